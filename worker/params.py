@@ -1,0 +1,138 @@
+"""Detector and pipeline parameters: one pydantic model per detector.
+
+These models are the single source of truth for parameter names, defaults and ranges. The command
+line (`lidar-outliers detect`, `lidar-outliers detectors`) and the web service (`/processes`) are
+both generated from them, so a parameter is spelt the same everywhere.
+
+Every model forbids unknown fields, so a typo such as ``{"n_1": 5}`` is refused with a message that
+names the field instead of being silently ignored.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+Auto = Literal["auto"]
+
+
+class _Stage(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TemporalParams(_Stage):
+    """Algorithm (a): moving fixed-interval smoother along scan lines (eqs. 1-17)."""
+
+    detector: Literal["temporal"] = "temporal"
+    n1: int = Field(5, ge=1, le=100, description="Points before the tested point in the window.")
+    n2: int = Field(5, ge=1, le=100, description="Points after the tested point in the window.")
+    sigma: float | Auto = Field(
+        "auto",
+        description="Standard deviation of each coordinate in metres (> 0), or 'auto' for a robust "
+        "estimate from the data (reported in the statistics).",
+    )
+    alpha: float = Field(0.001, gt=0.0, lt=0.5, description="Two-sided significance level.")
+    max_gap: float | Auto = Field(
+        "auto",
+        description="Time step in seconds (> 0) above which a scan line is split into segments; "
+        "'auto' = 5 x the group's median positive time step.",
+    )
+    group_by: Literal["point_source_id", "none"] = Field(
+        "point_source_id", description="Dimension that separates the scanners, or 'none'."
+    )
+
+    @model_validator(mode="after")
+    def _positive_numbers(self) -> TemporalParams:
+        _require_positive(self.sigma, "sigma")
+        _require_positive(self.max_gap, "max_gap")
+        return self
+
+
+class PatchParams(_Stage):
+    """Algorithm (b): quadric surface (eqs. 18-31) fitted to the k nearest neighbours of each point."""
+
+    detector: Literal["patch"] = "patch"
+    k: int = Field(40, ge=10, le=500, description="Neighbours per patch, the point itself included.")
+    sigma: float = Field(
+        0.005, gt=0.0, description="Coordinate standard deviation in metres (D_ii = sigma^2 I)."
+    )
+    alpha: float = Field(0.001, gt=0.0, lt=0.5, description="Two-sided significance level.")
+
+
+class SectionParams(_Stage):
+    """Algorithm (c): one quadric per square XY section, refitted until no outlier remains."""
+
+    detector: Literal["section"] = "section"
+    section_size: float = Field(5.0, gt=0.0, le=10000.0, description="Section edge in metres.")
+    sigma: float = Field(
+        0.005, gt=0.0, description="Coordinate standard deviation in metres (D_ii = sigma^2 I)."
+    )
+    alpha: float = Field(0.001, gt=0.0, lt=0.5, description="Two-sided significance level.")
+    max_iterations: int = Field(10, ge=1, le=1000, description="Refits per section at most.")
+
+
+class GroundParams(_Stage):
+    """Iterative TIN-based ground filter: step-edge triangles by slope, adjust, repeat."""
+
+    detector: Literal["ground"] = "ground"
+    slope_threshold: float = Field(
+        45.0, gt=0.0, lt=90.0, description="Triangle slope in degrees above which it is a step edge."
+    )
+    max_iterations: int = Field(50, ge=1, le=10000, description="Adjust-and-retest rounds at most.")
+
+
+def _require_positive(value: float | str, name: str) -> None:
+    if not isinstance(value, str) and not value > 0:
+        raise ValueError(f"{name} must be > 0 or 'auto', got {value!r}")
+
+
+#: Outlier detectors, by name, with their bit in the ``outlier_flags`` extra dimension.
+OUTLIER_DETECTOR_BITS: dict[str, int] = {"temporal": 1, "patch": 2, "section": 4}
+
+Stage = Annotated[
+    TemporalParams | PatchParams | SectionParams | GroundParams,
+    Field(discriminator="detector"),
+]
+
+STAGE_MODELS: dict[str, type[_Stage]] = {
+    "temporal": TemporalParams,
+    "patch": PatchParams,
+    "section": SectionParams,
+    "ground": GroundParams,
+}
+
+
+class PipelineParams(BaseModel):
+    """An ordered list of stages; a later stage sees only the points earlier stages did not flag."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    pipeline: list[Stage] | None = Field(
+        None,
+        description="Stages in order. Default: temporal then patch (patch alone for a file "
+        "without gps_time).",
+    )
+    classify: bool = Field(
+        True, description="Write noise_class to flagged points (and 2/1 for ground)."
+    )
+    noise_class: int = Field(7, ge=0, le=255, description="ASPRS class for flagged points (7 or 18).")
+    reference_classes: list[int] | None = Field(
+        None,
+        description="Input classes taken as truth (e.g. [7, 18] for noise, [2] for ground); adds "
+        "confusion counts to the statistics.",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _empty_pipeline_is_default(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("pipeline") == []:
+            raise ValueError("pipeline must name at least one stage")
+        return data
+
+
+def default_stages(has_gps_time: bool) -> list[_Stage]:
+    """The pipeline run when a job names none."""
+    if has_gps_time:
+        return [TemporalParams(), PatchParams()]
+    return [PatchParams()]
