@@ -1,0 +1,1 @@
+"""Sub-commands of `lidar-outliers`: each module here defines ``register(subparsers)``."""

@@ -1,0 +1,21 @@
+"""One exception root for everything a user can get wrong; each message is one line that says what to fix."""
+
+
+class LidarOutliersError(Exception):
+    """Root of the errors this project raises on purpose."""
+
+
+class LasFormatError(LidarOutliersError):
+    """The file is not a readable LAS/LAZ file (bad signature, truncated, inconsistent header...)."""
+
+
+class MissingDimensionError(LidarOutliersError):
+    """A detector needs a dimension the file does not have (e.g. temporal without gps_time)."""
+
+
+class ParameterError(LidarOutliersError):
+    """A parameter is out of range or inconsistent (e.g. k too small for alpha)."""
+
+
+class CancelledError(LidarOutliersError):
+    """The job was cancelled while it ran."""
