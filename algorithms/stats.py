@@ -1,0 +1,53 @@
+"""Statistics helpers shared by the detectors: critical values and a robust scale estimate."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+#: Factor that makes the median absolute deviation a consistent estimator of a normal sigma
+#: (1 / Phi^-1(3/4)).
+MAD_TO_SIGMA = 1.482602218505602
+
+
+def _check_alpha(alpha: float) -> float:
+    alpha = float(alpha)
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
+    return alpha
+
+
+def normal_critical_value(alpha: float) -> float:
+    """Two-sided critical value of the standard normal: P(|Z| > c) = alpha.
+
+    Used with eq. 17 (the standardised difference of the temporal detector).
+    """
+    return float(stats.norm.isf(_check_alpha(alpha) / 2.0))
+
+
+def t_critical_value(alpha: float, dof: float | np.ndarray) -> float | np.ndarray:
+    """Two-sided critical value of Student's t with ``dof`` degrees of freedom.
+
+    P(|T| > c) = alpha. ``dof`` may be a scalar or an array (any shape); the result has the same
+    shape (a float for a scalar). Used with eq. 31 (t(n - 9) for the quadric patches). Entries
+    with ``dof <= 0`` give NaN.
+    """
+    alpha = _check_alpha(alpha)
+    dof_arr = np.asarray(dof, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        crit = stats.t.isf(alpha / 2.0, np.where(dof_arr > 0, dof_arr, np.nan))
+    if np.ndim(crit) == 0:
+        return float(crit)
+    return np.asarray(crit, dtype=np.float64)
+
+
+def mad_sigma(x: np.ndarray) -> float:
+    """Robust standard deviation: 1.4826 x median(|x - median(x)|), ignoring NaN.
+
+    x : array of any shape. Returns NaN when x holds no finite value.
+    """
+    values = np.asarray(x, dtype=np.float64).ravel()
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return float("nan")
+    return float(MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
