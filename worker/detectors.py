@@ -1,0 +1,148 @@
+"""The detector registry: one entry per detector name, shared by the pipeline, CLI and service.
+
+Adding a detector means adding one :class:`DetectorSpec` to :data:`DETECTORS` (and its parameter
+model to ``worker/params.py``). The algorithm modules are imported inside each ``run`` function so
+that a detector still being written fails only when it is used, never at import time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel
+
+from algorithms.result import DetectorResult
+from worker.errors import MissingDimensionError
+from worker.lasio import Cloud
+from worker.params import (
+    OUTLIER_DETECTOR_BITS,
+    GroundParams,
+    PatchParams,
+    SectionParams,
+    TemporalParams,
+)
+
+
+@dataclass
+class GroundResult:
+    """Outcome of a ground filter on n points: ``is_ground`` (n,) bool and JSON-able ``info``."""
+
+    is_ground: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DetectorSpec:
+    """One detector: its parameter model, how to run it and where its result goes.
+
+    ``kind`` is ``"outlier"`` (sets bit ``bit`` of ``outlier_flags`` and writes ``<name>_score``)
+    or ``"ground"`` (writes classes 2/1 instead of a bit).
+    """
+
+    name: str
+    params_model: type[BaseModel]
+    run: Callable[[Cloud, Any], DetectorResult | GroundResult]
+    kind: Literal["outlier", "ground"]
+    bit: int | None
+    summary: str
+    needs: tuple[str, ...] = ()
+
+    @property
+    def description(self) -> str:
+        return (self.params_model.__doc__ or self.summary).strip()
+
+
+def _require_gps_time(cloud: Cloud, detector: str) -> np.ndarray:
+    if cloud.gps_time is None:
+        raise MissingDimensionError(
+            f"the {detector} detector needs gps_time, which this point format does not have "
+            f"(use point format 1, 3-10, or run patch/section instead)"
+        )
+    return cloud.gps_time
+
+
+def _run_temporal(cloud: Cloud, params: TemporalParams) -> DetectorResult:
+    from algorithms.temporal import detect_temporal
+
+    gps_time = _require_gps_time(cloud, "temporal")
+    group = None if params.group_by == "none" else cloud.point_source_id
+    return detect_temporal(
+        cloud.xyz, gps_time, group,
+        n1=params.n1, n2=params.n2, sigma=params.sigma, alpha=params.alpha,
+        max_gap=params.max_gap,
+    )
+
+
+def _run_patch(cloud: Cloud, params: PatchParams) -> DetectorResult:
+    from algorithms.patch import detect_patch
+
+    return detect_patch(cloud.xyz, k=params.k, sigma=params.sigma, alpha=params.alpha)
+
+
+def _run_section(cloud: Cloud, params: SectionParams) -> DetectorResult:
+    from algorithms.section import detect_section
+
+    return detect_section(
+        cloud.xyz, section_size=params.section_size, sigma=params.sigma, alpha=params.alpha,
+        max_iterations=params.max_iterations,
+    )
+
+
+def _run_ground(cloud: Cloud, params: GroundParams) -> GroundResult:
+    from algorithms.ground import classify_ground
+
+    out = classify_ground(
+        cloud.xyz, slope_threshold=params.slope_threshold, max_iterations=params.max_iterations
+    )
+    return GroundResult(is_ground=np.asarray(out.is_ground, dtype=bool), info=dict(out.info))
+
+
+DETECTORS: dict[str, DetectorSpec] = {
+    "temporal": DetectorSpec(
+        name="temporal",
+        params_model=TemporalParams,
+        run=_run_temporal,
+        kind="outlier",
+        bit=OUTLIER_DETECTOR_BITS["temporal"],
+        summary="Moving fixed-interval smoother along each scanner's time series (eqs. 1-17).",
+        needs=("gps_time",),
+    ),
+    "patch": DetectorSpec(
+        name="patch",
+        params_model=PatchParams,
+        run=_run_patch,
+        kind="outlier",
+        bit=OUTLIER_DETECTOR_BITS["patch"],
+        summary="Quadric fitted to each point's k nearest neighbours, tested with eq. 31.",
+    ),
+    "section": DetectorSpec(
+        name="section",
+        params_model=SectionParams,
+        run=_run_section,
+        kind="outlier",
+        bit=OUTLIER_DETECTOR_BITS["section"],
+        summary="One quadric per square XY section, refitted until no outlier remains.",
+    ),
+    "ground": DetectorSpec(
+        name="ground",
+        params_model=GroundParams,
+        run=_run_ground,
+        kind="ground",
+        bit=None,
+        summary="Iterative TIN ground filter: class 2 (ground) or 1 for unflagged points.",
+    ),
+}
+
+
+def get_detector(name: str) -> DetectorSpec:
+    """The registry entry for ``name``; ParameterError naming the known detectors otherwise."""
+    from worker.errors import ParameterError
+
+    try:
+        return DETECTORS[name]
+    except KeyError:
+        known = ", ".join(DETECTORS)
+        raise ParameterError(f"unknown detector {name!r} (known: {known})") from None

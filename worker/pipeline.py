@@ -1,0 +1,381 @@
+"""Run a pipeline of detectors over a cloud or a LAS/LAZ file, and gather the statistics.
+
+A pipeline is an ordered list of stages (``worker.params.PipelineParams``). Each stage sees only
+the points that earlier stages did not flag (the paper's Table 5 runs (a) and then (b) on what
+(a) left); ``ground`` classifies the points not flagged as noise. The result holds the
+``outlier_flags`` bitmask, one float32 score per outlier detector (NaN where the detector did not
+test the point), the new classification (``classify`` on) and a JSON-ready statistics dict.
+
+:func:`process_file` is the whole file-to-file run used by ``lidar-outliers detect`` and the
+Celery worker: validate the header, read, run, write atomically, optionally write the statistics.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ValidationError
+
+from algorithms.result import DetectorResult
+from worker import lasio
+from worker.detectors import GroundResult, get_detector
+from worker.errors import ParameterError
+from worker.lasio import Cloud, LasFacts
+from worker.params import PipelineParams, default_stages
+
+Progress = Callable[[float, str], None]
+
+#: Point formats 0-5 store the class in 5 bits.
+LEGACY_MAX_CLASS = 31
+GROUND_CLASS, OTHER_CLASS = 2, 1
+#: Share of the progress bar given to reading, detecting and writing in :func:`process_file`.
+_READ, _DETECT = 0.25, 0.75
+
+
+@dataclass
+class PipelineResult:
+    """Outcome of a pipeline on n points.
+
+    flags : (n,) uint8, ``outlier_flags`` bitmask (1 temporal, 2 patch, 4 section).
+    scores : name -> (n,) float32, per outlier detector that ran; NaN where untested.
+    classification : (n,) uint8 with ``classify`` on, else None (classes left untouched).
+    statistics : JSON-serialisable dict (see :func:`run_pipeline`).
+    """
+
+    flags: np.ndarray
+    scores: dict[str, np.ndarray]
+    classification: np.ndarray | None
+    statistics: dict[str, Any] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- parameters
+
+
+def validation_message(exc: ValidationError, *, option_style: bool = False) -> str:
+    """One line naming the offending field(s) of a pydantic error.
+
+    ``pipeline.0.temporal.n1`` becomes ``pipeline[0].n1`` (or ``--n1`` with ``option_style``).
+    """
+    parts = []
+    for err in exc.errors():
+        loc = [str(x) for x in err.get("loc", ())]
+        # The discriminated union inserts the detector name after the index: drop it.
+        cleaned: list[str] = []
+        for i, item in enumerate(loc):
+            if i > 0 and loc[i - 1].isdigit() and item in _stage_names():
+                continue
+            cleaned.append(f"[{item}]" if item.isdigit() else item)
+        name = ".".join(cleaned).replace(".[", "[") or "parameters"
+        if option_style and cleaned:
+            name = "--" + cleaned[-1].replace("_", "-")
+        msg = err.get("msg", "invalid value")
+        msg = msg.removeprefix("Value error, ")
+        if err.get("type") == "extra_forbidden":
+            msg = "unknown parameter"
+        elif err.get("type") == "union_tag_invalid":
+            msg = f"unknown detector {err.get('input')!r} (known: {', '.join(_stage_names())})"
+        elif "input" in err and err.get("type") not in ("missing",):
+            given = err["input"]
+            if not isinstance(given, dict | list):
+                msg = f"{msg} (got {given!r})"
+        parts.append(f"{name}: {msg}")
+    return "; ".join(parts)
+
+
+def _stage_names() -> list[str]:
+    from worker.detectors import DETECTORS
+
+    return list(DETECTORS)
+
+
+def parse_pipeline_params(data: Any) -> PipelineParams:
+    """Validate a pipeline document (dict or JSON text); ParameterError with one line otherwise."""
+    if isinstance(data, str | bytes):
+        try:
+            data = json.loads(data)
+        except json.JSONDecodeError as exc:
+            raise ParameterError(f"parameters are not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise ParameterError("parameters must be a JSON object")
+    try:
+        return PipelineParams.model_validate(data)
+    except ValidationError as exc:
+        raise ParameterError(validation_message(exc)) from None
+
+
+def usable_gps_time(gps_time: np.ndarray | None) -> tuple[bool, str]:
+    """Whether the temporal detector can work on these times, and why not."""
+    if gps_time is None:
+        return False, "the point format has no gps_time"
+    finite = gps_time[np.isfinite(gps_time)]
+    if gps_time.size >= 2 and finite.size == 0:
+        return False, "gps_time is NaN in every point"
+    if finite.size >= 2 and finite.min() == finite.max():
+        return False, f"gps_time is the same ({finite[0]!r}) in every point"
+    return True, "the file has gps_time"
+
+
+def resolve_stages(params: PipelineParams, gps_time: np.ndarray | None) -> tuple[list, dict]:
+    """The stages to run and a statistics note on where they came from."""
+    if params.pipeline is not None:
+        stages = list(params.pipeline)
+        note = {"pipeline_source": "given"}
+    else:
+        ok, why = usable_gps_time(gps_time)
+        stages = default_stages(ok)
+        names = " then ".join(s.detector for s in stages)
+        note = {"pipeline_source": "default", "default_reason": f"{why}: {names}"}
+    seen: set[str] = set()
+    for stage in stages:
+        spec = get_detector(stage.detector)
+        if spec.kind == "outlier" and stage.detector in seen:
+            raise ParameterError(
+                f"detector {stage.detector} appears twice in the pipeline; each outlier detector "
+                f"runs at most once (it has one score dimension)"
+            )
+        seen.add(stage.detector)
+    return stages, note
+
+
+def check_noise_class(params: PipelineParams, point_format: int) -> None:
+    """Point formats 0-5 hold classes 0-31 only."""
+    if params.classify and point_format <= 5 and params.noise_class > LEGACY_MAX_CLASS:
+        raise ParameterError(
+            f"noise_class {params.noise_class} does not fit point format {point_format} "
+            f"(classes 0-{LEGACY_MAX_CLASS}); use e.g. 7"
+        )
+
+
+# --------------------------------------------------------------------------- running
+
+
+def run_pipeline(
+    cloud: Cloud,
+    params: PipelineParams,
+    progress: Progress | None = None,
+    *,
+    facts: LasFacts | None = None,
+    progress_span: tuple[float, float] = (0.0, 1.0),
+) -> PipelineResult:
+    """Run the stages of ``params`` on ``cloud``.
+
+    Statistics: ``input`` (file facts when given), ``pipeline_source`` (and ``default_reason``),
+    ``stages`` (per stage: detector, params as resolved, the detector's ``info`` with sigma
+    estimates, points_in, points_tested, points_flagged, critical_value, seconds and, with
+    ``reference_classes``, ``confusion`` in the layout of the paper's Tables 2-5 or
+    ``ground_scores`` for ``ground``), and ``overall`` (points, flagged, per-bit counts, confusion).
+    """
+    n = len(cloud)
+    stages, note = resolve_stages(params, cloud.gps_time)
+    flags = np.zeros(n, dtype=np.uint8)
+    scores: dict[str, np.ndarray] = {}
+    classes = cloud.classification.astype(np.uint8, copy=True) if params.classify else None
+    noise_truth, ground_truth = _reference_truth(cloud, params.reference_classes)
+    lo, hi = progress_span
+    step = (hi - lo) / max(len(stages), 1)
+    stage_stats = []
+    for i, stage in enumerate(stages):
+        spec = get_detector(stage.detector)
+        if progress is not None:
+            progress(lo + i * step, f"stage {i + 1}/{len(stages)}: {spec.name}")
+        index = np.flatnonzero(flags == 0)
+        if spec.kind == "outlier":
+            scores[spec.name] = np.full(n, np.nan, dtype=np.float32)
+        started = time.perf_counter()
+        entry: dict[str, Any] = {
+            "detector": spec.name,
+            "params": stage.model_dump(mode="json"),
+            "points_in": int(index.size),
+        }
+        if index.size == 0:
+            entry.update(points_tested=0, points_flagged=0, skipped="no points left to test")
+            stage_stats.append(entry)
+            continue
+        sub = cloud if index.size == n else cloud.subset(index)
+        result = spec.run(sub, stage)
+        if isinstance(result, GroundResult):
+            is_ground = result.is_ground
+            if classes is not None:
+                classes[index] = np.where(is_ground, GROUND_CLASS, OTHER_CLASS)
+            entry.update(
+                info=result.info,
+                points_tested=int(index.size),
+                points_flagged=0,
+                points_ground=int(np.count_nonzero(is_ground)),
+                points_other=int(index.size - np.count_nonzero(is_ground)),
+            )
+            if ground_truth is not None:
+                from algorithms.metrics import ground_scores
+
+                entry["ground_scores"] = ground_scores(ground_truth[index], is_ground)
+        else:
+            entry.update(_outlier_stage(result, spec.bit, index, flags, scores[spec.name]))
+            if noise_truth is not None:
+                from algorithms.metrics import outlier_confusion
+
+                entry["confusion"] = outlier_confusion(noise_truth[index], result.flagged)
+        entry["seconds"] = round(time.perf_counter() - started, 4)
+        stage_stats.append(entry)
+    if progress is not None:
+        progress(hi, "detection done")
+    if classes is not None:
+        classes[flags != 0] = params.noise_class
+    statistics: dict[str, Any] = {
+        "input": facts.to_dict() if facts is not None else {"points": n},
+        **note,
+        "classify": params.classify,
+        "noise_class": params.noise_class,
+        "reference_classes": params.reference_classes,
+        "stages": stage_stats,
+        "overall": _overall(flags, noise_truth),
+    }
+    return PipelineResult(flags, scores, classes, _jsonable(statistics))
+
+
+def _outlier_stage(
+    result: DetectorResult, bit: int | None, index: np.ndarray, flags: np.ndarray,
+    score_out: np.ndarray,
+) -> dict[str, Any]:
+    flagged = np.asarray(result.flagged, dtype=bool)
+    score_out[index] = result.score
+    flags[index[flagged]] |= np.uint8(bit or 0)
+    return {
+        "info": result.info,
+        "points_tested": int(np.count_nonzero(result.tested)),
+        "points_flagged": int(np.count_nonzero(flagged)),
+        "critical_value": result.critical_value,
+    }
+
+
+def _reference_truth(
+    cloud: Cloud, reference: list[int] | None
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Noise truth (the reference classes other than 2) and ground truth (class 2, if named)."""
+    if not reference:
+        return None, None
+    noise_classes = [c for c in reference if c != GROUND_CLASS]
+    noise = np.isin(cloud.classification, noise_classes) if noise_classes else None
+    ground = cloud.classification == GROUND_CLASS if GROUND_CLASS in reference else None
+    return noise, ground
+
+
+def _overall(flags: np.ndarray, noise_truth: np.ndarray | None) -> dict[str, Any]:
+    flagged = flags != 0
+    out: dict[str, Any] = {
+        "points": int(flags.size),
+        "points_flagged": int(np.count_nonzero(flagged)),
+        "flagged_by_bit": {
+            name: int(np.count_nonzero(flags & bit))
+            for name, bit in (("temporal", 1), ("patch", 2), ("section", 4))
+        },
+    }
+    if noise_truth is not None:
+        from algorithms.metrics import outlier_confusion
+
+        out["confusion"] = outlier_confusion(noise_truth, flagged)
+    return out
+
+
+def _jsonable(value: Any) -> Any:
+    """Plain JSON types: numpy scalars to Python, NaN/inf to None, tuples to lists."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, BaseModel):
+        return value.model_dump(mode="json")
+    return value
+
+
+# --------------------------------------------------------------------------- file to file
+
+
+def process_file(
+    in_path: str | os.PathLike[str],
+    out_path: str | os.PathLike[str],
+    params: PipelineParams | dict[str, Any] | None = None,
+    *,
+    laz: bool | None = None,
+    progress: Progress | None = None,
+    stats_path: str | os.PathLike[str] | None = None,
+    chunk_points: int = lasio.DEFAULT_CHUNK_POINTS,
+) -> dict[str, Any]:
+    """Validate, read, run the pipeline, write the flagged cloud; return the statistics.
+
+    ``laz=None`` writes LAZ when the input is LAZ. ``progress(fraction, message)`` is called while
+    reading, per stage and while writing; whatever it raises propagates unchanged (the service
+    cancels jobs that way) and no output file is left behind. ``stats_path`` also receives the
+    statistics as JSON (written atomically).
+    """
+    t0 = time.perf_counter()
+    if params is None:
+        params = PipelineParams()
+    elif not isinstance(params, PipelineParams):
+        params = parse_pipeline_params(params)
+    in_path, out_path = Path(in_path), Path(out_path)
+    if out_path.resolve() == in_path.resolve():
+        raise ParameterError("the output file must differ from the input file")
+    if progress is not None:
+        progress(0.0, f"checking {in_path.name}")
+    facts = lasio.inspect_las(in_path)
+    check_noise_class(params, facts.point_format)
+    cloud = lasio.read_cloud(
+        in_path, chunk_points=chunk_points, progress=progress, progress_span=(0.0, _READ)
+    )
+    t_read = time.perf_counter()
+    result = run_pipeline(
+        cloud, params, progress, facts=facts, progress_span=(_READ, _DETECT)
+    )
+    del cloud
+    t_detect = time.perf_counter()
+    compress = facts.compressed if laz is None else laz
+    lasio.write_result(
+        in_path, out_path, flags=result.flags, scores=result.scores,
+        classification=result.classification, laz=compress, chunk_points=chunk_points,
+        progress=progress, progress_span=(_DETECT, 1.0),
+    )
+    t_write = time.perf_counter()
+    stats = result.statistics
+    stats["output"] = {
+        "name": out_path.name,
+        "compressed": compress,
+        "dimensions_added": [name for name, _, _ in lasio.result_dimensions(list(result.scores))],
+    }
+    stats["seconds"] = {
+        "read": round(t_read - t0, 4),
+        "detect": round(t_detect - t_read, 4),
+        "write": round(t_write - t_detect, 4),
+        "total": round(t_write - t0, 4),
+    }
+    if stats_path is not None:
+        write_json_atomic(stats_path, stats)
+    if progress is not None:
+        progress(1.0, "done")
+    return stats
+
+
+def write_json_atomic(path: str | os.PathLike[str], data: Any) -> None:
+    """Write JSON to a temporary name beside ``path`` and rename it into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    try:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
