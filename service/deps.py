@@ -1,0 +1,37 @@
+"""FastAPI dependencies: settings, the job service and the calling user, as ``Annotated`` types."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from service.jobs import JobService
+from service.settings import Settings
+from service.store import User
+
+_bearer = HTTPBearer(auto_error=False, description="An API key from `lidar-outliers users add`.")
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_service(request: Request) -> JobService:
+    return request.app.state.service
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+ServiceDep = Annotated[JobService, Depends(get_service)]
+
+
+def current_user(
+    request: Request,
+    service: ServiceDep,
+    _credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> User:
+    return service.authenticate(request.headers.get("authorization"))
+
+
+UserDep = Annotated[User, Depends(current_user)]

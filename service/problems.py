@@ -1,0 +1,70 @@
+"""RFC 9457 problem details: every error the API answers is ``application/problem+json``.
+
+Types of the OGC API - Processes standard keep their OGC URIs; the others are relative URIs
+``/problems/<slug>`` that the API also serves as short human-readable descriptions.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+OGC = "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
+MEDIA_TYPE = "application/problem+json"
+
+#: slug -> (title, what to do). OGC slugs map to the standard's URIs.
+PROBLEMS: dict[str, tuple[str, str]] = {
+    "no-such-process": ("Unknown process", "GET /processes lists the processes."),
+    "no-such-job": ("Unknown job", "GET /jobs lists your jobs; another user's jobs are not "
+                    "visible."),
+    "result-not-ready": ("Result not ready", "Poll GET /jobs/{id} until status is successful."),
+    "invalid-parameter": ("Invalid parameter", "Fix the named input; GET /processes/{id} "
+                          "gives each input's JSON Schema."),
+    "invalid-request": ("Invalid request", "The request body or query is malformed."),
+    "unauthorized": ("Missing or wrong API key", "Send `Authorization: Bearer <key>`; "
+                     "`lidar-outliers users add NAME` creates a key."),
+    "file-too-large": ("File too large", "Upload a smaller file or raise MAX_UPLOAD_BYTES."),
+    "storage-quota-exceeded": ("Storage quota exceeded", "DELETE finished jobs to free space."),
+    "unsupported-media-type": ("Not a LAS/LAZ file", "Send a LAS 1.0-1.4 or LAZ file."),
+    "too-many-jobs": ("Too many active jobs", "Wait for a job to finish (see Retry-After) or "
+                      "DELETE one."),
+    "job-failed": ("Job failed", "The job's message says why."),
+    "not-found": ("Not found", "GET /docs lists the routes."),
+    "method-not-allowed": ("Method not allowed", "GET /docs lists the methods of each route."),
+    "service-unavailable": ("Service unavailable", "Redis or the workers are not reachable."),
+    "internal-error": ("Internal error", "Report it with the time of the request."),
+}
+OGC_SLUGS = {"no-such-process", "no-such-job", "result-not-ready"}
+
+
+def problem_type(slug: str) -> str:
+    return OGC + slug if slug in OGC_SLUGS else f"/problems/{slug}"
+
+
+class Problem(Exception):
+    """An error to answer as problem details; raised by the service logic, rendered by the app."""
+
+    def __init__(
+        self,
+        status: int,
+        slug: str,
+        detail: str,
+        *,
+        headers: dict[str, str] | None = None,
+        **extra: Any,
+    ) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.slug = slug
+        self.detail = detail
+        self.headers = headers or {}
+        self.extra = extra
+
+    def body(self) -> dict[str, Any]:
+        title = PROBLEMS.get(self.slug, (self.slug.replace("-", " ").capitalize(), ""))[0]
+        return {
+            "type": problem_type(self.slug),
+            "title": title,
+            "status": self.status,
+            "detail": self.detail,
+            **self.extra,
+        }

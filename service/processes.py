@@ -1,0 +1,178 @@
+"""Process descriptions (OGC API - Processes) and input validation, generated from the pydantic
+parameter models in ``worker/params.py`` so the API, the CLI and the worker share one contract.
+
+A single-detector process takes that detector's parameters plus the pipeline-level fields
+(``classify``, ``noise_class``, ``reference_classes``); the ``pipeline`` process takes
+:class:`worker.params.PipelineParams` as it is.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, ValidationError, create_model
+
+from service.problems import Problem
+from worker.params import STAGE_MODELS, PipelineParams
+
+PIPELINE = "pipeline"
+PIPELINE_LEVEL = ("classify", "noise_class", "reference_classes")
+#: The input that names the cloud in a JSON execute request; not a parameter.
+CLOUD_INPUT = "cloud"
+
+
+def stage_models() -> dict[str, type[BaseModel]]:
+    """Detectors by name: the registry of ``worker.detectors`` when present, else the models."""
+    try:
+        from worker.detectors import DETECTORS
+    except ImportError:
+        return dict(STAGE_MODELS)
+    models = dict(STAGE_MODELS)
+    for name, spec in DETECTORS.items():
+        model = getattr(spec, "params", None) or getattr(spec, "params_model", None)
+        if isinstance(model, type) and issubclass(model, BaseModel):
+            models[name] = model
+    return models
+
+
+def process_ids() -> list[str]:
+    return [*stage_models(), PIPELINE]
+
+
+@lru_cache
+def inputs_model(process_id: str) -> type[BaseModel]:
+    """The pydantic model of one process's inputs (raises Problem 404 for an unknown id)."""
+    if process_id == PIPELINE:
+        return PipelineParams
+    models = stage_models()
+    if process_id not in models:
+        raise Problem(404, "no-such-process", f"no process {process_id!r}; choose one of "
+                      f"{', '.join(process_ids())}")
+    stage = models[process_id]
+    fields: dict[str, Any] = {
+        name: (info.annotation, info)
+        for name, info in stage.model_fields.items()
+        if name != "detector"
+    }
+    for name in PIPELINE_LEVEL:
+        info = PipelineParams.model_fields[name]
+        fields[name] = (info.annotation, info)
+    model = create_model(
+        f"{stage.__name__.removesuffix('Params')}Inputs",
+        __config__=ConfigDict(extra="forbid"),
+        __doc__=stage.__doc__,
+        **fields,
+    )
+    # keep the stage's own validators (e.g. sigma > 0 or 'auto') by validating through it too
+    model.__stage_model__ = stage  # type: ignore[attr-defined]
+    return model
+
+
+def resolve_inputs(process_id: str, inputs: dict[str, Any]) -> PipelineParams:
+    """Validate a request's inputs into the pipeline the worker runs.
+
+    Raises Problem 422 naming each wrong parameter."""
+    model = inputs_model(process_id)
+    try:
+        if process_id == PIPELINE:
+            return PipelineParams.model_validate(inputs)
+        checked = model.model_validate(inputs)
+        stage_fields = {
+            k: v for k, v in checked.model_dump().items() if k not in PIPELINE_LEVEL
+        }
+        stage = model.__stage_model__.model_validate(  # type: ignore[attr-defined]
+            {"detector": process_id, **stage_fields}
+        )
+        return PipelineParams(
+            pipeline=[stage],
+            **{k: getattr(checked, k) for k in PIPELINE_LEVEL},
+        )
+    except ValidationError as exc:
+        raise invalid_inputs(exc) from None
+
+
+def invalid_inputs(exc: ValidationError) -> Problem:
+    errors = [
+        {"parameter": ".".join(str(p) for p in e["loc"]) or "inputs", "message": e["msg"]}
+        for e in exc.errors()
+    ]
+    detail = "; ".join(f"{e['parameter']}: {e['message']}" for e in errors)
+    return Problem(422, "invalid-parameter", detail, errors=errors)
+
+
+def _schema_of(model: type[BaseModel]) -> dict[str, Any]:
+    return model.model_json_schema()
+
+
+def describe(process_id: str, base_url: str = "") -> dict[str, Any]:
+    """OGC process description: inputs as JSON Schema with their defaults."""
+    model = inputs_model(process_id)
+    schema = _schema_of(model)
+    defs = schema.get("$defs", {})
+    inputs: dict[str, Any] = {
+        CLOUD_INPUT: {
+            "title": "Point cloud",
+            "description": "LAS 1.0-1.4 or LAZ: multipart part `file`, or "
+            "{\"href\": \"/uploads/<id>\"} from POST /uploads in a JSON execute request.",
+            "minOccurs": 1,
+            "maxOccurs": 1,
+            "schema": {"type": "string", "contentMediaType": "application/vnd.laszip",
+                       "contentEncoding": "binary"},
+        }
+    }
+    for name, prop in schema.get("properties", {}).items():
+        prop = dict(prop)
+        if defs:
+            prop["$defs"] = defs
+        inputs[name] = {
+            "title": prop.get("title", name),
+            "description": prop.pop("description", ""),
+            "minOccurs": 0,
+            "maxOccurs": 1,
+            "schema": prop,
+        }
+    doc = (model.__doc__ or "").strip()
+    if process_id == PIPELINE:
+        title = "Pipeline of detectors"
+    else:
+        title = f"{process_id} detector"
+    return {
+        "id": process_id,
+        "title": title,
+        "description": doc,
+        "version": "0.1.0",
+        "jobControlOptions": ["async-execute", "dismiss"],
+        "outputTransmission": ["reference"],
+        "inputs": inputs,
+        "outputs": {
+            "cloud": {
+                "title": "Flagged point cloud",
+                "description": "The input with outlier_flags and <detector>_score extra "
+                "dimensions (and noise classes when classify is on).",
+                "schema": {"type": "string", "contentMediaType": "application/vnd.las",
+                           "contentEncoding": "binary"},
+            },
+            "statistics": {
+                "title": "Statistics",
+                "description": "Per stage: points tested and flagged, resolved parameters, "
+                "seconds; confusion counts with reference_classes.",
+                "schema": {"type": "object", "contentMediaType": "application/json"},
+            },
+        },
+        "links": [
+            {"href": f"{base_url}/processes/{process_id}/execution", "rel":
+             "http://www.opengis.net/def/rel/ogc/1.0/execute", "title": "Execute"},
+        ],
+    }
+
+
+def summary(process_id: str, base_url: str = "") -> dict[str, Any]:
+    full = describe(process_id, base_url)
+    return {
+        k: full[k] for k in ("id", "title", "description", "version", "jobControlOptions",
+                             "outputTransmission")
+    } | {
+        "links": [{"href": f"{base_url}/processes/{process_id}", "rel": "self",
+                   "type": "application/json"}]
+    }

@@ -1,0 +1,88 @@
+"""/jobs: the caller's jobs, their status, results and dismissal."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Query
+from fastapi.responses import FileResponse
+
+from service.deps import ServiceDep, UserDep
+from service.jobs import status_document
+
+router = APIRouter(tags=["jobs"])
+
+MEDIA = {".las": "application/vnd.las", ".laz": "application/vnd.laszip"}
+
+
+@router.get("/jobs")
+def list_jobs(
+    service: ServiceDep,
+    user: UserDep,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 50,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> dict[str, Any]:
+    """The caller's jobs, newest first."""
+    jobs, total = service.list(user, limit, offset)
+    links = [{"href": f"/jobs?limit={limit}&offset={offset}", "rel": "self",
+              "type": "application/json"}]
+    if offset + len(jobs) < total:
+        links.append({"href": f"/jobs?limit={limit}&offset={offset + limit}", "rel": "next",
+                      "type": "application/json"})
+    if offset > 0:
+        links.append({"href": f"/jobs?limit={limit}&offset={max(0, offset - limit)}",
+                      "rel": "prev", "type": "application/json"})
+    return {"jobs": [status_document(j) for j in jobs], "numberMatched": total,
+            "numberReturned": len(jobs), "links": links}
+
+
+@router.get("/jobs/{job_id}")
+def get_job(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, Any]:
+    return status_document(service.get(user, job_id))
+
+
+@router.delete("/jobs/{job_id}")
+def dismiss_job(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, Any]:
+    """Cancel a queued or running job, or delete a finished job's files."""
+    return status_document(service.dismiss(user, job_id))
+
+
+@router.get("/jobs/{job_id}/results")
+def get_results(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, Any]:
+    job, _ = service.result_file(user, job_id, "cloud")
+    base = f"/jobs/{job_id}/results"
+    cloud_type = MEDIA[".laz" if job.laz else ".las"]
+    return {
+        "cloud": {"href": f"{base}/cloud", "type": cloud_type,
+                  "title": "flagged cloud (?keep=inliers|outliers, ?format=las|laz)"},
+        "statistics": {"href": f"{base}/statistics", "type": "application/json"},
+        "preview": {"href": f"{base}/preview", "type": "image/png"},
+    }
+
+
+@router.get("/jobs/{job_id}/results/cloud", response_class=FileResponse)
+def get_cloud(
+    job_id: str,
+    service: ServiceDep,
+    user: UserDep,
+    keep: Literal["all", "inliers", "outliers"] = "all",
+    format: Literal["las", "laz"] | None = None,
+) -> FileResponse:
+    """The flagged cloud; LAZ when the input was LAZ or with ``?format=laz``."""
+    laz = None if format is None else format == "laz"
+    path = service.cloud_file(user, job_id, keep, laz)
+    suffix = f"-{keep}" if keep != "all" else ""
+    return FileResponse(path, media_type=MEDIA[path.suffix],
+                        filename=f"{job_id}{suffix}{path.suffix}")
+
+
+@router.get("/jobs/{job_id}/results/statistics", response_class=FileResponse)
+def get_statistics(job_id: str, service: ServiceDep, user: UserDep) -> FileResponse:
+    _, path = service.result_file(user, job_id, "statistics")
+    return FileResponse(path, media_type="application/json")
+
+
+@router.get("/jobs/{job_id}/results/preview", response_class=FileResponse)
+def get_preview(job_id: str, service: ServiceDep, user: UserDep) -> FileResponse:
+    """A PNG of the flagged cloud, rendered on first request."""
+    return FileResponse(service.preview_file(user, job_id), media_type="image/png")

@@ -1,0 +1,119 @@
+"""/processes: descriptions and execution (multipart upload or JSON with an upload's href)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
+
+from service.deps import ServiceDep, UserDep
+from service.jobs import status_document
+from service.problems import Problem
+from service.processes import describe, inputs_model, process_ids, summary
+from service.uploads import receive_multipart
+
+router = APIRouter(tags=["processes"])
+
+MAX_JSON_BYTES = 1024**2
+
+EXECUTE_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file"],
+                    "properties": {
+                        "file": {"type": "string", "format": "binary",
+                                 "description": "The LAS or LAZ cloud."},
+                        "inputs": {"type": "string",
+                                   "description": "The process inputs as JSON, e.g. "
+                                   '{"n1": 5}; GET /processes/{id} gives the schema.'},
+                    },
+                }
+            },
+            "application/json": {
+                "schema": {
+                    "type": "object",
+                    "required": ["inputs"],
+                    "properties": {"inputs": {"type": "object", "description":
+                                              'The inputs plus "cloud": {"href": '
+                                              '"/uploads/<id>"} from POST /uploads.'}},
+                }
+            },
+        },
+    }
+}
+
+
+@router.get("/processes")
+def list_processes() -> dict[str, Any]:
+    return {
+        "processes": [summary(p) for p in process_ids()],
+        "links": [{"href": "/processes", "rel": "self", "type": "application/json"}],
+    }
+
+
+@router.get("/processes/{process_id}")
+def get_process(process_id: str) -> dict[str, Any]:
+    return describe(process_id)
+
+
+def _json_inputs(text: str) -> Any:
+    try:
+        return json.loads(text) if text.strip() else {}
+    except json.JSONDecodeError as exc:
+        raise Problem(400, "invalid-parameter", f"inputs: not valid JSON ({exc})",
+                      errors=[{"parameter": "inputs", "message": "not valid JSON"}]) from None
+
+
+@router.post("/processes/{process_id}/execution", status_code=201, openapi_extra=EXECUTE_BODY)
+async def execute(process_id: str, request: Request, service: ServiceDep,
+                  user: UserDep) -> JSONResponse:
+    """Queue a job: answers 201, ``Location: /jobs/{id}`` and the status document."""
+    inputs_model(process_id)  # 404 before reading a large body
+    service.check_active_limit(user)  # 429 likewise
+    content_type = request.headers.get("content-type", "")
+    if content_type.startswith("multipart/form-data"):
+        limit, quota = service.upload_limit(user)
+        received = await receive_multipart(request.stream(), content_type,
+                                           service.incoming_dir, limit, quota)
+        assert received.path is not None
+        try:
+            params, cloud = service.parse_inputs(process_id,
+                                                 _json_inputs(received.fields.get("inputs", "")))
+            if cloud is not None:
+                raise Problem(422, "invalid-parameter", "cloud: give the file in part `file` "
+                              "or an href in a JSON request, not both")
+        except BaseException:
+            received.path.unlink(missing_ok=True)
+            raise
+        job = service.submit(user, process_id, params, received.path, received.filename,
+                             move=True)
+    elif content_type.startswith("application/json"):
+        body = await request.body()
+        if len(body) > MAX_JSON_BYTES:
+            raise Problem(413, "file-too-large", "a JSON execute request is at most 1 MiB")
+        document = _json_inputs(body.decode("utf-8", "replace"))
+        if not isinstance(document, dict) or not isinstance(document.get("inputs", {}), dict):
+            raise Problem(400, "invalid-request", 'send {"inputs": {"cloud": {"href": '
+                          '"/uploads/<id>"}, ...}}')
+        params, cloud = service.parse_inputs(process_id, document.get("inputs", {}))
+        href = cloud.get("href") if isinstance(cloud, dict) else None
+        if not isinstance(href, str):
+            raise Problem(422, "invalid-parameter", 'cloud: missing; give "cloud": {"href": '
+                          '"/uploads/<id>"} (POST /uploads first) or send multipart/form-data',
+                          errors=[{"parameter": "cloud", "message": "missing href"}])
+        upload = service.find_upload(user, href)
+        job = service.submit(user, process_id, params, Path(upload.path), upload.name,
+                             move=False)
+    else:
+        raise Problem(415, "unsupported-media-type",
+                      "send multipart/form-data (part `file` and optional part `inputs`) or "
+                      "application/json with inputs.cloud.href")
+    return JSONResponse(status_document(job), status_code=201,
+                        headers={"Location": f"/jobs/{job.id}"})

@@ -1,0 +1,43 @@
+"""/uploads: a raw request body streamed to disk, to be named by later execute requests."""
+
+from __future__ import annotations
+
+import os
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse
+
+from service.deps import ServiceDep, UserDep
+from service.uploads import receive_raw
+
+router = APIRouter(tags=["uploads"])
+
+UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {"application/octet-stream": {"schema": {"type": "string",
+                                                            "format": "binary"}}},
+    }
+}
+
+
+@router.post("/uploads", status_code=201, openapi_extra=UPLOAD_BODY)
+async def upload(
+    request: Request,
+    service: ServiceDep,
+    user: UserDep,
+    name: Annotated[str, Query(max_length=255, description="File name to remember.")] = "cloud",
+) -> JSONResponse:
+    """Store a LAS/LAZ file sent as the raw body (``curl --data-binary @cloud.las``)."""
+    limit, quota = service.upload_limit(user)
+    received = await receive_raw(request.stream(), service.incoming_dir, limit, quota,
+                                 os.path.basename(name) or "cloud")
+    assert received.path is not None
+    stored = service.store_upload(user, received.path, received.filename)
+    href = f"/uploads/{stored.id}"
+    return JSONResponse(
+        {"id": stored.id, "href": href, "name": stored.name, "bytes": stored.bytes,
+         "created": stored.created},
+        status_code=201, headers={"Location": href},
+    )

@@ -1,0 +1,192 @@
+"""Request bodies streamed to disk chunk by chunk, never held whole in memory.
+
+Both readers stop writing as soon as the limit is passed and answer 413; they keep reading (and
+discarding) a bounded amount of the rest of the body so that the client receives the answer
+instead of a reset connection.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+from python_multipart.multipart import MultipartParser, parse_options_header
+
+from service.problems import Problem
+
+#: After a 413, read at most this much more of the body before giving up on the connection.
+DRAIN_LIMIT = 64 * 1024**2
+#: Largest non-file multipart part (the JSON inputs).
+MAX_FIELD_BYTES = 1024**2
+
+
+@dataclass
+class Received:
+    path: Path | None
+    filename: str
+    size: int
+    fields: dict[str, str]
+
+
+def too_large(limit: int, quota: bool) -> Problem:
+    if quota:
+        return Problem(413, "storage-quota-exceeded",
+                       f"the upload would exceed your storage quota ({limit} bytes left); "
+                       "DELETE finished jobs first")
+    return Problem(413, "file-too-large",
+                   f"the file is larger than the limit of {limit} bytes (MAX_UPLOAD_BYTES)")
+
+
+async def _drain(stream: AsyncIterator[bytes]) -> None:
+    seen = 0
+    async for chunk in stream:
+        seen += len(chunk)
+        if seen > DRAIN_LIMIT:
+            return
+
+
+def part_path(directory: Path) -> Path:
+    directory.mkdir(parents=True, exist_ok=True)
+    return directory / f"{uuid.uuid4().hex}.part"
+
+
+async def receive_raw(
+    stream: AsyncIterator[bytes], directory: Path, limit: int, quota: bool, filename: str
+) -> Received:
+    """Write a raw request body to a new ``.part`` file in ``directory``."""
+    path = part_path(directory)
+    size = 0
+    try:
+        with open(path, "wb") as out:
+            async for chunk in stream:
+                size += len(chunk)
+                if size > limit:
+                    raise too_large(limit, quota)
+                out.write(chunk)
+    except Problem:
+        path.unlink(missing_ok=True)
+        await _drain(stream)
+        raise
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    if size == 0:
+        path.unlink(missing_ok=True)
+        raise Problem(400, "invalid-request", "the request body is empty; send the LAS/LAZ file "
+                      "as the body")
+    return Received(path=path, filename=filename, size=size, fields={})
+
+
+class _FormReader:
+    """Callbacks for python-multipart: the part named ``file`` goes to disk, others to memory."""
+
+    def __init__(self, directory: Path, limit: int, quota: bool) -> None:
+        self.directory = directory
+        self.limit = limit
+        self.quota = quota
+        self.path: Path | None = None
+        self.filename = ""
+        self.size = 0
+        self.fields: dict[str, str] = {}
+        self._out: BinaryIO | None = None
+        self._name = ""
+        self._buffer = bytearray()
+        self._header_field = bytearray()
+        self._header_value = bytearray()
+        self._headers: dict[str, bytes] = {}
+
+    def callbacks(self) -> dict:
+        return {
+            "on_part_begin": self.part_begin,
+            "on_part_data": self.part_data,
+            "on_part_end": self.part_end,
+            "on_header_field": lambda d, s, e: self._header_field.extend(d[s:e]),
+            "on_header_value": lambda d, s, e: self._header_value.extend(d[s:e]),
+            "on_header_end": self.header_end,
+            "on_headers_finished": self.headers_finished,
+        }
+
+    def part_begin(self) -> None:
+        self._headers = {}
+        self._name = ""
+        self._buffer = bytearray()
+
+    def header_end(self) -> None:
+        self._headers[bytes(self._header_field).decode("latin-1").lower()] = bytes(
+            self._header_value
+        )
+        self._header_field = bytearray()
+        self._header_value = bytearray()
+
+    def headers_finished(self) -> None:
+        _, options = parse_options_header(self._headers.get("content-disposition", b""))
+        self._name = options.get(b"name", b"").decode("utf-8", "replace")
+        if self._name == "file":
+            if self.path is not None:
+                raise Problem(400, "invalid-request", "send exactly one part named `file`")
+            self.filename = options.get(b"filename", b"cloud.las").decode("utf-8", "replace")
+            self.path = part_path(self.directory)
+            self._out = open(self.path, "wb")  # noqa: SIM115 - closed in part_end / cleanup
+
+    def part_data(self, data: bytes, start: int, end: int) -> None:
+        if self._out is not None:
+            self.size += end - start
+            if self.size > self.limit:
+                raise too_large(self.limit, self.quota)
+            self._out.write(data[start:end])
+        else:
+            self._buffer.extend(data[start:end])
+            if len(self._buffer) > MAX_FIELD_BYTES:
+                raise Problem(400, "invalid-request",
+                              f"form field {self._name!r} is larger than {MAX_FIELD_BYTES} bytes")
+
+    def part_end(self) -> None:
+        if self._out is not None:
+            self._out.close()
+            self._out = None
+        elif self._name:
+            self.fields[self._name] = self._buffer.decode("utf-8", "replace")
+
+    def cleanup(self) -> None:
+        if self._out is not None:
+            self._out.close()
+            self._out = None
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
+
+
+async def receive_multipart(
+    stream: AsyncIterator[bytes], content_type: str, directory: Path, limit: int, quota: bool
+) -> Received:
+    """Parse ``multipart/form-data`` as it arrives: part ``file`` to disk, other parts kept."""
+    _, options = parse_options_header(content_type)
+    boundary = options.get(b"boundary")
+    if not boundary:
+        raise Problem(400, "invalid-request", "multipart/form-data without a boundary")
+    reader = _FormReader(directory, limit, quota)
+    parser = MultipartParser(boundary, reader.callbacks())
+    try:
+        async for chunk in stream:
+            parser.write(chunk)
+        parser.finalize()
+    except Problem:
+        reader.cleanup()
+        await _drain(stream)
+        raise
+    except Exception as exc:
+        reader.cleanup()
+        raise Problem(400, "invalid-request", f"malformed multipart body: {exc}") from None
+    except BaseException:
+        reader.cleanup()
+        raise
+    if reader.path is None or reader.size == 0:
+        reader.cleanup()
+        raise Problem(400, "invalid-request",
+                      "no file: send the LAS/LAZ cloud in a multipart part named `file` "
+                      "(curl -F file=@cloud.las)")
+    return Received(path=reader.path, filename=os.path.basename(reader.filename) or "cloud.las",
+                    size=reader.size, fields=reader.fields)
