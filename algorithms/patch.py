@@ -1,0 +1,133 @@
+"""The `patch` detector: algorithm (b) of Leslar, Wang & Hu (2010), eqs. 18-31.
+
+For every point the general quadric (eqs. 18-19) is fitted to its k nearest neighbours (the point
+itself included) by the adjustment of :mod:`algorithms.quadric`, and the point's own T_i (eq. 31)
+is tested against the two-sided critical value of t(k - 9) at ``alpha``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from algorithms.quadric import DOF_LOSS, fit_quadrics, min_patch_size
+from algorithms.result import DetectorResult
+from algorithms.stats import t_critical_value
+from algorithms.tiles import spatial_batches
+from worker.errors import ParameterError
+
+#: Patches fitted per batch: 65536 x 40 x 3 float64 = 63 MB of gathered coordinates.
+BATCH_POINTS = 65536
+#: Adjustments per patch at most, and the step size taken as convergence (||da||, ||a|| = 1).
+FIT_MAX_ITER = 100
+FIT_TOL = 1e-8
+
+
+def check_xyz(xyz: np.ndarray) -> np.ndarray:
+    """(n, 3) finite float64 copy-free view of ``xyz``, or ParameterError."""
+    arr = np.asarray(xyz, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ParameterError(f"xyz must have shape (n, 3), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError("xyz holds NaN or infinite coordinates")
+    return arr
+
+
+def check_sigma(sigma: float | np.ndarray) -> np.ndarray:
+    """sigma as a (3,) array of positive per-axis standard deviations, or ParameterError."""
+    s = np.asarray(sigma, dtype=np.float64)
+    if s.ndim > 1 or s.size not in (1, 3) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise ParameterError(f"sigma must be > 0 (a number or one per axis), got {sigma!r}")
+    return np.broadcast_to(s, (3,)).copy()
+
+
+def check_k_alpha(k: int, alpha: float) -> float:
+    """Critical value t(k - 9) at ``alpha``; ParameterError when eq. 31 can never exceed it."""
+    if not 0.0 < alpha < 0.5:
+        raise ParameterError(f"alpha must be in (0, 0.5), got {alpha!r}")
+    if k <= DOF_LOSS:
+        raise ParameterError(f"k must be at least 10 (10 quadric parameters), got k={k}")
+    crit = t_critical_value(alpha, k - DOF_LOSS)
+    if not np.sqrt(k - DOF_LOSS) > crit:
+        raise ParameterError(
+            f"k={k} is too small for alpha={alpha}: T of eq. 31 never exceeds "
+            f"sqrt(k-9)={np.sqrt(k - DOF_LOSS):.3g} < t(k-9)={crit:.3g}, so nothing could be "
+            f"flagged; use k >= {min_patch_size(alpha)} or a larger alpha"
+        )
+    return float(crit)
+
+
+def detect_patch(
+    xyz: np.ndarray,
+    *,
+    k: int = 40,
+    sigma: float | np.ndarray = 0.005,
+    alpha: float = 0.001,
+    batch_points: int = BATCH_POINTS,
+    tile_size: float | None = None,
+) -> DetectorResult:
+    """Test every point against the quadric fitted to its k nearest neighbours.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+        Coordinates in metres (any offset: the cloud is shifted to its minimum corner and every
+        patch to its own centroid before any polynomial arithmetic).
+    k : int
+        Points per patch, the tested point included (>= 10 and large enough for ``alpha``).
+    sigma : float or (3,) float
+        Coordinate standard deviation in metres, D_ii = diag(sigma^2) in eq. 30. T_i does not
+        depend on a common scale of sigma (sigma_0 absorbs it); only per-axis ratios matter.
+    alpha : float
+        Two-sided significance level of the t test of eq. 31.
+    batch_points, tile_size :
+        Memory control: patches are gathered and fitted for ``batch_points`` spatially adjacent
+        points at a time. Results do not depend on them.
+
+    Returns
+    -------
+    DetectorResult
+        score (n,) = T_i of eq. 31 of each point in its own patch, NaN where the patch did not
+        converge (or n < k); flagged = score > t(k - 9) critical value.
+    """
+    pts = check_xyz(xyz)
+    var_sigma = check_sigma(sigma)
+    k = int(k)
+    crit = check_k_alpha(k, float(alpha))
+    n = pts.shape[0]
+    score = np.full(n, np.nan)
+    info: dict = {
+        "k": k,
+        "sigma": float(var_sigma[0]) if np.all(var_sigma == var_sigma[0]) else var_sigma.tolist(),
+        "alpha": float(alpha),
+        "critical_value": crit,
+        "points_tested": 0,
+        "patches_not_converged": 0,
+        "mean_iterations": None,
+        "fit_max_iterations": FIT_MAX_ITER,
+        "fit_tolerance": FIT_TOL,
+    }
+    if n < k:
+        info["note"] = f"fewer points ({n}) than k={k}: nothing tested"
+        return DetectorResult(score, np.zeros(n, dtype=bool), crit, info)
+
+    local = pts - pts.min(axis=0)  # exact enough before the per-patch centring
+    tree = cKDTree(local)
+    not_converged = 0
+    iterations_sum = 0
+    for batch in spatial_batches(local[:, :2], batch_points, tile_size):
+        _, nbr = tree.query(local[batch], k=k, workers=-1)
+        fit = fit_quadrics(
+            local[nbr], var_sigma, max_iter=FIT_MAX_ITER, tol=FIT_TOL, t_first_only=True
+        )
+        score[batch] = np.where(fit.converged, fit.t_stat[:, 0], np.nan)
+        not_converged += int((~fit.converged).sum())
+        iterations_sum += int(fit.iterations.sum())
+        del nbr, fit
+    tested = ~np.isnan(score)
+    info["points_tested"] = int(tested.sum())
+    info["patches_not_converged"] = not_converged
+    info["mean_iterations"] = iterations_sum / n
+    flagged = np.zeros(n, dtype=bool)
+    flagged[tested] = score[tested] > crit
+    return DetectorResult(score, flagged, crit, info)

@@ -1,0 +1,487 @@
+"""Least-squares fit of the general quadric surface, eqs. 18-31 of Leslar, Wang & Hu (2010).
+
+The model is the implicit quadric of eq. 18,
+
+    F(a, x, y, z) = a1 x^2 + a2 y^2 + a3 z^2 + a4 xy + a5 xz + a6 yz + a7 x + a8 y + a9 z + a10 = 0,
+
+under the constraint of eq. 19, ||a|| = 1. Every point gives one *equivalent single measurement*
+(eqs. 28-29): its residual v_i = B_i da + w_i, with B_i the design row of eq. 23, w_i = F(a0, x_i)
+(eq. 24), and variance sigma_i^2 = g_i^T D_ii g_i (eq. 30), g_i the gradient of F (eqs. 25-27).
+Together with the linearised constraint this is a parametric adjustment with a constraint; each
+iteration solves the Lagrange-bordered normal equations
+
+    [ N     a0 ] [ da ]   [ -u              ]
+    [ a0^T  0  ] [ k  ] = [ (1 - a0.a0) / 2 ],   N = B^T P B,  u = B^T P w,  P = diag(1/sigma_i^2),
+
+i.e. eq. 19 is linearised as 2 a0.da = 1 - a0.a0 and the parameters are *not* renormalised between
+iterations (the linearised constraint pulls ||a|| back to 1 by itself; at convergence ||a|| = 1 to
+the tolerance).
+
+Choices that fix what the paper leaves open (the fitted surface depends on the frame because of
+eq. 19):
+
+* every surface is fitted in the frame of its own centroid (coordinates minus the mean of the
+  points used, no scaling), so coordinates near 5e6 m lose nothing;
+* the start is the algebraic fit: the unit eigenvector of the smallest eigenvalue of B^T B;
+* the linearisation is at the observed coordinates (eqs. 24-27), as in the paper;
+* iteration stops when ||da|| < tol or after max_iter iterations (then ``converged`` is False);
+* the reported residuals, sigma_0 and T_i are those of the last adjustment solved:
+  sigma_0^2 = v^T P v / (n - 9) and T_i = |v_i| / (sigma_0 sqrt(q_vv_i)) (eq. 31) with
+  Q_vv = P^-1 - B Q_aa B^T, Q_aa the 10 x 10 block of the inverse bordered matrix.
+
+Two facts of this model matter to its users. T_i <= sqrt(n - 9) always (a studentised residual
+with the internal sigma_0 cannot exceed the square root of the redundancy), so a patch of k points
+can only flag anything when sqrt(k - 9) exceeds the critical value of t(k - 9)
+(:func:`min_patch_size`).
+On flat ground the algebraic start is already a pair of nearly coincident planes (the z^2 column is
+tiny) and the iteration converges linearly, slowly (a contraction of about 0.6 per step is typical),
+towards a double plane; the iteration cap bounds the work and such patches report
+``converged = False``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from algorithms.stats import t_critical_value
+
+#: Unknowns of eq. 18 and the redundancy lost to them (10 parameters, 1 constraint).
+N_PARAMS = 10
+DOF_LOSS = 9
+
+
+@dataclass
+class QuadricFit:
+    """Result of :func:`fit_quadrics` for m surfaces of k points each.
+
+    Attributes
+    ----------
+    params : (m, 10) float64
+        a1..a10 of eq. 18 in each surface's centroid frame, ||a|| = 1 (eq. 19), sign chosen so
+        that the component of largest magnitude is positive.
+    centroid : (m, 3) float64
+        The frame origin of each surface (mean of its points).
+    residuals : (m, k) float64
+        v_i of eq. 29 (the equivalent single measurement residual, units of F).
+    t_stat : (m, k) float64
+        T_i of eq. 31.
+    sigma0 : (m,) float64
+        Posterior standard deviation of unit weight.
+    iterations : (m,) int64
+        Adjustments solved.
+    converged : (m,) bool
+        ||da|| < tol reached within max_iter (False also for a singular system).
+    """
+
+    params: np.ndarray
+    centroid: np.ndarray
+    residuals: np.ndarray
+    t_stat: np.ndarray
+    sigma0: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+
+
+# ---------------------------------------------------------------------------------------------
+# The equations, one point at a time (inlined by numba).
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def design_row(x: float, y: float, z: float, out: np.ndarray) -> None:
+    """B_i of eq. 23 written into ``out`` (10,)."""
+    out[0] = x * x
+    out[1] = y * y
+    out[2] = z * z
+    out[3] = x * y
+    out[4] = x * z
+    out[5] = y * z
+    out[6] = x
+    out[7] = y
+    out[8] = z
+    out[9] = 1.0
+
+
+@njit(cache=True, inline="always")
+def gradient(a: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """(a_x, a_y, a_z) of eqs. 25-27: the gradient of F at the observed point for parameters a."""
+    ax = 2.0 * a[0] * x + a[3] * y + a[4] * z + a[6]
+    ay = 2.0 * a[1] * y + a[3] * x + a[5] * z + a[7]
+    az = 2.0 * a[2] * z + a[4] * x + a[5] * y + a[8]
+    return ax, ay, az
+
+
+@njit(cache=True, inline="always")
+def equivalent_variance(
+    ax: float, ay: float, az: float, var_x: float, var_y: float, var_z: float
+) -> float:
+    """sigma_i^2 of eq. 30 for a diagonal D_ii = diag(var_x, var_y, var_z)."""
+    return ax * ax * var_x + ay * ay * var_y + az * az * var_z
+
+
+@njit(cache=True, inline="always")
+def t_statistic(v: float, sigma0: float, q_vv: float) -> float:
+    """T_i of eq. 31: |v_i| / (sigma_0 sqrt(q_vv_i)); NaN when q_vv or sigma_0 is not positive."""
+    if q_vv <= 0.0 or sigma0 <= 0.0:
+        return math.nan
+    return abs(v) / (sigma0 * math.sqrt(q_vv))
+
+
+# ---------------------------------------------------------------------------------------------
+# Small dense linear algebra without LAPACK calls (a call per patch would dominate the cost).
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _gauss_jordan(m: np.ndarray, r: np.ndarray) -> bool:
+    """Solve m x = r in place (r (s, c) becomes x) by Gauss-Jordan with partial pivoting.
+
+    m is destroyed. Returns False when a pivot is zero relative to the largest entry of m.
+    """
+    s = m.shape[0]
+    c = r.shape[1]
+    scale = 0.0
+    for i in range(s):
+        for j in range(s):
+            scale = max(scale, abs(m[i, j]))
+    tiny = scale * 1e-300 if scale > 0.0 else 1e-300
+    for col in range(s):
+        piv = col
+        best = abs(m[col, col])
+        for i in range(col + 1, s):
+            if abs(m[i, col]) > best:
+                best = abs(m[i, col])
+                piv = i
+        if not best > tiny:
+            return False
+        if piv != col:
+            for j in range(s):
+                m[col, j], m[piv, j] = m[piv, j], m[col, j]
+            for j in range(c):
+                r[col, j], r[piv, j] = r[piv, j], r[col, j]
+        inv = 1.0 / m[col, col]
+        for i in range(s):
+            if i == col:
+                continue
+            f = m[i, col] * inv
+            if f == 0.0:
+                continue
+            for j in range(col, s):
+                m[i, j] -= f * m[col, j]
+            for j in range(c):
+                r[i, j] -= f * r[col, j]
+    for i in range(s):
+        inv = 1.0 / m[i, i]
+        for j in range(c):
+            r[i, j] *= inv
+    return True
+
+
+@njit(cache=True)
+def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> None:
+    """Unit eigenvector of the smallest eigenvalue of B^T B (active rows), into ``out`` (10,)."""
+    btb = np.zeros((N_PARAMS, N_PARAMS))
+    b = np.empty(N_PARAMS)
+    for i in range(xyz.shape[0]):
+        if not active[i]:
+            continue
+        design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
+        for p in range(N_PARAMS):
+            bp = b[p]
+            for q in range(p, N_PARAMS):
+                btb[p, q] += bp * b[q]
+    for p in range(N_PARAMS):
+        for q in range(p):
+            btb[p, q] = btb[q, p]
+    _, vecs = np.linalg.eigh(btb)
+    for p in range(N_PARAMS):
+        out[p] = vecs[p, 0]
+
+
+# ---------------------------------------------------------------------------------------------
+# One surface: the iterative adjustment.
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _fit_one(
+    xyz: np.ndarray,
+    active: np.ndarray,
+    var: np.ndarray,
+    max_iter: int,
+    tol: float,
+    t_first_only: bool,
+    a: np.ndarray,
+    v_out: np.ndarray,
+    t_out: np.ndarray,
+) -> tuple[float, int, bool]:
+    """Fit one quadric to the active rows of ``xyz`` (n, 3), already centred.
+
+    ``var`` (3,) is diag(D_ii). ``a`` (10,) receives the parameters; ``v_out`` and ``t_out`` (n,)
+    receive v_i and T_i of the active rows (inactive rows are left untouched; with
+    ``t_first_only`` only row 0 gets T). Returns (sigma0, iterations, converged); sigma0 is NaN
+    and converged False when the system is singular or has no redundancy.
+    """
+    n = xyz.shape[0]
+    n_act = 0
+    for i in range(n):
+        if active[i]:
+            n_act += 1
+    if n_act <= DOF_LOSS:
+        return math.nan, 0, False
+    _algebraic_start(xyz, active, a)
+
+    s = N_PARAMS + 1
+    m = np.empty((s, s))
+    m_last = np.empty((s, s))
+    rhs = np.empty((s, 1))
+    b = np.empty(N_PARAMS)
+    da = np.zeros(N_PARAMS)
+    w = np.empty(n)
+    p_w = np.empty(n)
+
+    iterations = 0
+    converged = False
+    for _ in range(max_iter):
+        iterations += 1
+        for r in range(s):
+            for c in range(s):
+                m[r, c] = 0.0
+            rhs[r, 0] = 0.0
+        for i in range(n):
+            if not active[i]:
+                continue
+            x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+            design_row(x, y, z, b)
+            wi = 0.0
+            for q in range(N_PARAMS):
+                wi += b[q] * a[q]  # eq. 24
+            ax, ay, az = gradient(a, x, y, z)
+            s2 = equivalent_variance(ax, ay, az, var[0], var[1], var[2])
+            if not s2 > 0.0:
+                return math.nan, iterations, False
+            pi = 1.0 / s2
+            w[i] = wi
+            p_w[i] = pi
+            for q in range(N_PARAMS):
+                pb = pi * b[q]
+                rhs[q, 0] -= pb * wi
+                for c in range(q, N_PARAMS):
+                    m[q, c] += pb * b[c]
+        aa = 0.0
+        for q in range(N_PARAMS):
+            for c in range(q):
+                m[q, c] = m[c, q]
+            m[q, N_PARAMS] = a[q]
+            m[N_PARAMS, q] = a[q]
+            aa += a[q] * a[q]
+        m[N_PARAMS, N_PARAMS] = 0.0
+        rhs[N_PARAMS, 0] = 0.5 * (1.0 - aa)  # eq. 19 linearised
+        m_last[:, :] = m
+        if not _gauss_jordan(m, rhs):
+            return math.nan, iterations, False
+        step = 0.0
+        for q in range(N_PARAMS):
+            da[q] = rhs[q, 0]
+            step += da[q] * da[q]
+            a[q] += da[q]
+        if math.sqrt(step) < tol:
+            converged = True
+            break
+
+    # Residuals (eq. 29) and their cofactors from the last adjustment solved.
+    vpv = 0.0
+    for i in range(n):
+        if not active[i]:
+            continue
+        design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
+        vi = w[i]
+        for q in range(N_PARAMS):
+            vi += b[q] * da[q]
+        v_out[i] = vi
+        vpv += p_w[i] * vi * vi
+    sigma0 = math.sqrt(vpv / (n_act - DOF_LOSS))
+    inv = np.zeros((s, s))
+    for r in range(s):
+        inv[r, r] = 1.0
+    if not _gauss_jordan(m_last, inv):
+        return math.nan, iterations, False
+    for i in range(n):
+        if not active[i] or (t_first_only and i > 0):
+            continue
+        design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
+        bqb = 0.0
+        for q in range(N_PARAMS):
+            acc = 0.0
+            for c in range(N_PARAMS):
+                acc += inv[q, c] * b[c]
+            bqb += b[q] * acc
+        t_out[i] = t_statistic(v_out[i], sigma0, 1.0 / p_w[i] - bqb)
+    _canonical_sign(a)
+    return sigma0, iterations, converged
+
+
+@njit(cache=True, inline="always")
+def _canonical_sign(a: np.ndarray) -> None:
+    """Scale a by -1 if needed so that its largest-magnitude entry is positive."""
+    big = 0
+    for q in range(1, N_PARAMS):
+        if abs(a[q]) > abs(a[big]):
+            big = q
+    if a[big] < 0.0:
+        for q in range(N_PARAMS):
+            a[q] = -a[q]
+
+
+@njit(cache=True)
+def _centre(xyz: np.ndarray, active: np.ndarray, out: np.ndarray, centroid: np.ndarray) -> None:
+    """out = xyz - mean of the active rows (written to centroid (3,))."""
+    n_act = 0
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    for i in range(xyz.shape[0]):
+        if active[i]:
+            n_act += 1
+            sx += xyz[i, 0]
+            sy += xyz[i, 1]
+            sz += xyz[i, 2]
+    if n_act > 0:
+        centroid[0] = sx / n_act
+        centroid[1] = sy / n_act
+        centroid[2] = sz / n_act
+    for i in range(xyz.shape[0]):
+        for j in range(3):
+            out[i, j] = xyz[i, j] - centroid[j]
+
+
+# ---------------------------------------------------------------------------------------------
+# Many surfaces at once.
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, parallel=True)
+def _fit_patches(
+    patches: np.ndarray,
+    var: np.ndarray,
+    max_iter: int,
+    tol: float,
+    t_first_only: bool,
+    params: np.ndarray,
+    centroid: np.ndarray,
+    v: np.ndarray,
+    t: np.ndarray,
+    sigma0: np.ndarray,
+    iterations: np.ndarray,
+    converged: np.ndarray,
+) -> None:
+    m, k, _ = patches.shape
+    for j in prange(m):
+        active = np.ones(k, dtype=np.bool_)
+        local = np.empty((k, 3))
+        _centre(patches[j], active, local, centroid[j])
+        s0, it, ok = _fit_one(
+            local, active, var, max_iter, tol, t_first_only, params[j], v[j], t[j]
+        )
+        sigma0[j] = s0
+        iterations[j] = it
+        converged[j] = ok
+
+
+def _variances(sigma: float | np.ndarray) -> np.ndarray:
+    """diag(D_ii) (3,) from a scalar sigma or a per-axis (3,) sigma, in metres."""
+    s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,))
+    if not np.all(np.isfinite(s)) or np.any(s <= 0.0):
+        raise ValueError(f"sigma must be > 0, got {sigma!r}")
+    return np.ascontiguousarray(s * s)
+
+
+def fit_quadrics(
+    patches: np.ndarray,
+    sigma: float | np.ndarray = 0.005,
+    *,
+    max_iter: int = 50,
+    tol: float = 1e-10,
+    t_first_only: bool = False,
+) -> QuadricFit:
+    """Fit the quadric of eqs. 18-19 to each of m patches of k points (parallel over patches).
+
+    Parameters
+    ----------
+    patches : (m, k, 3) float
+        Coordinates; each patch is centred on its own centroid before fitting. k >= 10.
+    sigma : float or (3,) float
+        Standard deviation of each coordinate (D_ii = diag(sigma^2), eq. 30).
+    max_iter : int
+        Adjustments solved at most per patch.
+    tol : float
+        Convergence when ||da|| < tol.
+    t_first_only : bool
+        Compute T_i (eq. 31) only for the first point of each patch (the patch detector's tested
+        point); the other entries of ``t_stat`` are NaN.
+
+    Returns
+    -------
+    QuadricFit
+    """
+    pts = np.ascontiguousarray(patches, dtype=np.float64)
+    if pts.ndim != 3 or pts.shape[2] != 3:
+        raise ValueError(f"patches must have shape (m, k, 3), got {pts.shape}")
+    m, k, _ = pts.shape
+    if k <= DOF_LOSS:
+        raise ValueError(f"a quadric patch needs at least 10 points, got k={k}")
+    params = np.zeros((m, N_PARAMS))
+    centroid = np.zeros((m, 3))
+    v = np.full((m, k), np.nan)
+    t = np.full((m, k), np.nan)
+    sigma0 = np.full(m, np.nan)
+    iterations = np.zeros(m, dtype=np.int64)
+    converged = np.zeros(m, dtype=np.bool_)
+    if m:
+        _fit_patches(
+            pts, _variances(sigma), int(max_iter), float(tol), bool(t_first_only),
+            params, centroid, v, t, sigma0, iterations, converged,
+        )  # fmt: skip
+    return QuadricFit(params, centroid, v, t, sigma0, iterations, converged)
+
+
+@njit(cache=True)
+def fit_masked(
+    xyz: np.ndarray,
+    active: np.ndarray,
+    var: np.ndarray,
+    max_iter: int,
+    tol: float,
+    params: np.ndarray,
+    centroid: np.ndarray,
+    v: np.ndarray,
+    t: np.ndarray,
+) -> tuple[float, int, bool]:
+    """Fit one quadric to the rows of ``xyz`` (n, 3) where ``active`` (n,) is True.
+
+    The frame is the centroid of the active rows (written to ``centroid`` (3,)); ``var`` (3,) is
+    diag(D_ii) of eq. 30. ``params`` (10,), ``v`` and ``t`` (n,) are outputs (eq. 29 residual and
+    eq. 31 T for active rows; inactive rows untouched). Returns (sigma0, iterations, converged).
+    Callable from other numba code (the section detector runs it per section in parallel).
+    """
+    local = np.empty((xyz.shape[0], 3))
+    _centre(xyz, active, local, centroid)
+    return _fit_one(local, active, var, max_iter, tol, False, params, v, t)
+
+
+def min_patch_size(alpha: float) -> int:
+    """Smallest n for which sqrt(n - 9) > t(n - 9) at ``alpha``: below it eq. 31 cannot flag."""
+    n = DOF_LOSS + 1
+    while not math.sqrt(n - DOF_LOSS) > t_critical_value(alpha, n - DOF_LOSS):
+        n += 1
+    return n
+
+
+def can_flag(n: int | np.ndarray, alpha: float) -> np.ndarray:
+    """True where a surface of n points can flag anything at ``alpha`` (sqrt(n-9) > t(n-9))."""
+    n = np.asarray(n)
+    return n >= min_patch_size(alpha)

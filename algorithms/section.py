@@ -1,0 +1,206 @@
+"""The `section` detector: algorithm (c) of Leslar, Wang & Hu (2010).
+
+The cloud is cut into square XY sections of ``section_size`` metres (grid anchored at the
+lower-left corner of the cloud's bounding box). One quadric (eqs. 18-31, :mod:`algorithms.quadric`)
+is fitted per section; the points whose T_i (eq. 31) exceeds the two-sided critical value of
+t(n - 9), n the points still in the section, are removed together and the surface is fitted again
+from a fresh algebraic start, until a fit removes nothing or ``max_iterations`` fits were made.
+
+Scores: a removed point keeps the T_i of the fit that removed it; a kept point gets its T_i in the
+last fit. A section that has fewer than the points needed for eq. 31 to flag anything at ``alpha``
+(see :func:`algorithms.quadric.min_patch_size`; never fewer than 10), or whose fit does not
+converge, leaves its remaining points untested (NaN); points removed before stay flagged.
+Sections run in parallel (numba, one section per task).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from algorithms.patch import check_sigma, check_xyz
+from algorithms.quadric import DOF_LOSS, N_PARAMS, fit_masked, min_patch_size
+from algorithms.result import DetectorResult
+from algorithms.stats import t_critical_value
+from algorithms.tiles import grid_cells, group_by_cell
+from worker.errors import ParameterError
+
+FIT_MAX_ITER = 100
+FIT_TOL = 1e-8
+
+# Section outcome codes (per section, for the statistics).
+_TESTED, _TOO_FEW, _NOT_CONVERGED = 0, 1, 2
+
+
+@njit(cache=True)
+def _untested(active: np.ndarray, score: np.ndarray) -> None:
+    """Points still in a section whose next fit cannot be made are untested (NaN)."""
+    for i in range(active.shape[0]):
+        if active[i]:
+            score[i] = np.nan
+
+
+@njit(cache=True)
+def _one_section(
+    xyz: np.ndarray,
+    var: np.ndarray,
+    crit_table: np.ndarray,
+    min_points: int,
+    max_fits: int,
+    max_iter: int,
+    tol: float,
+    score: np.ndarray,
+    flagged: np.ndarray,
+) -> tuple[int, int, int]:
+    """Iterative fit-and-remove on one section's points (n, 3); fills score and flagged (n,).
+
+    Returns (outcome code, fits made, adjustment iterations summed over the fits).
+    """
+    n = xyz.shape[0]
+    active = np.ones(n, dtype=np.bool_)
+    params = np.empty(N_PARAMS)
+    centroid = np.empty(3)
+    v = np.empty(n)
+    t = np.empty(n)
+    n_active = n
+    fits = 0
+    iterations = 0
+    for _ in range(max_fits):
+        if n_active < min_points:
+            _untested(active, score)
+            return _TOO_FEW, fits, iterations
+        sigma0, it, ok = fit_masked(xyz, active, var, max_iter, tol, params, centroid, v, t)
+        fits += 1
+        iterations += it
+        if not ok:
+            _untested(active, score)
+            return _NOT_CONVERGED, fits, iterations
+        crit = crit_table[n_active - DOF_LOSS]
+        removed = 0
+        for i in range(n):
+            if active[i]:
+                score[i] = t[i]
+                if t[i] > crit:
+                    flagged[i] = True
+                    active[i] = False
+                    removed += 1
+        n_active -= removed
+        if removed == 0:
+            break
+    return _TESTED, fits, iterations
+
+
+@njit(cache=True, parallel=True)
+def _all_sections(
+    xyz: np.ndarray,
+    offsets: np.ndarray,
+    var: np.ndarray,
+    crit_table: np.ndarray,
+    min_points: int,
+    max_fits: int,
+    max_iter: int,
+    tol: float,
+    score: np.ndarray,
+    flagged: np.ndarray,
+    outcome: np.ndarray,
+    fits: np.ndarray,
+    iterations: np.ndarray,
+) -> None:
+    """Run :func:`_one_section` on xyz[offsets[j]:offsets[j+1]] for every section j in parallel."""
+    for j in prange(offsets.shape[0] - 1):
+        lo, hi = offsets[j], offsets[j + 1]
+        outcome[j], fits[j], iterations[j] = _one_section(
+            xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol,
+            score[lo:hi], flagged[lo:hi],
+        )  # fmt: skip
+
+
+def detect_section(
+    xyz: np.ndarray,
+    *,
+    section_size: float = 5.0,
+    sigma: float | np.ndarray = 0.005,
+    alpha: float = 0.001,
+    max_iterations: int = 10,
+) -> DetectorResult:
+    """Fit one quadric per square XY section and remove outliers iteratively.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+        Coordinates in metres (any offset; each section is centred on its own centroid).
+    section_size : float
+        Section edge in metres.
+    sigma : float or (3,) float
+        Coordinate standard deviation, D_ii = diag(sigma^2) of eq. 30.
+    alpha : float
+        Two-sided significance level of the t test of eq. 31 (critical value t(n - 9), n the
+        points in the fit).
+    max_iterations : int
+        Fits per section at most.
+
+    Returns
+    -------
+    DetectorResult
+        score (n,) T_i (eq. 31) at removal or in the final fit, NaN where untested;
+        flagged (n,) points removed as outliers. ``critical_value`` is t(n - 9) for the median
+        section size (each section uses its own n).
+    """
+    pts = check_xyz(xyz)
+    var = check_sigma(sigma) ** 2
+    if not 0.0 < alpha < 0.5:
+        raise ParameterError(f"alpha must be in (0, 0.5), got {alpha!r}")
+    if not (np.isfinite(section_size) and section_size > 0):
+        raise ParameterError(f"section_size must be > 0, got {section_size!r}")
+    if int(max_iterations) < 1:
+        raise ParameterError(f"max_iterations must be >= 1, got {max_iterations!r}")
+    n = pts.shape[0]
+    min_points = max(min_patch_size(alpha), DOF_LOSS + 1)
+
+    local = pts - pts.min(axis=0) if n else pts
+    cell, _ = grid_cells(local[:, :2], float(section_size))
+    order, offsets = group_by_cell(cell)
+    sizes = np.diff(offsets)
+    max_n = int(sizes.max()) if sizes.size else 0
+    crit_table = np.full(max(max_n - DOF_LOSS + 1, 1), np.nan)
+    if max_n > DOF_LOSS:
+        crit_table[1:] = t_critical_value(alpha, np.arange(1, max_n - DOF_LOSS + 1))
+
+    m = sizes.size
+    xyz_sorted = np.ascontiguousarray(local[order])
+    score_sorted = np.full(n, np.nan)
+    flagged_sorted = np.zeros(n, dtype=np.bool_)
+    outcome = np.zeros(m, dtype=np.int64)
+    fits = np.zeros(m, dtype=np.int64)
+    iterations = np.zeros(m, dtype=np.int64)
+    if m:
+        _all_sections(
+            xyz_sorted, offsets, var, crit_table, min_points, int(max_iterations),
+            FIT_MAX_ITER, FIT_TOL, score_sorted, flagged_sorted, outcome, fits, iterations,
+        )  # fmt: skip
+    score = np.empty(n)
+    score[order] = score_sorted
+    flagged = np.empty(n, dtype=bool)
+    flagged[order] = flagged_sorted
+
+    median_n = int(np.median(sizes)) if m else 0
+    crit_median = float(t_critical_value(alpha, median_n - DOF_LOSS)) if median_n > 9 else None
+    n_fits = int(fits.sum())
+    info = {
+        "section_size": float(section_size),
+        "sigma": float(np.sqrt(var[0])) if np.all(var == var[0]) else np.sqrt(var).tolist(),
+        "alpha": float(alpha),
+        "max_iterations": int(max_iterations),
+        "critical_value": crit_median,
+        "critical_value_note": "t(n-9) per section; the value shown is for the median section",
+        "min_points_per_section": int(min_points),
+        "sections": int(m),
+        "sections_too_few_points": int((outcome == _TOO_FEW).sum()),
+        "sections_not_converged": int((outcome == _NOT_CONVERGED).sum()),
+        "points_tested": int((~np.isnan(score)).sum()),
+        "mean_fits_per_section": n_fits / m if m else None,
+        "mean_iterations": float(iterations.sum()) / n_fits if n_fits else None,
+        "fit_max_iterations": FIT_MAX_ITER,
+        "fit_tolerance": FIT_TOL,
+    }
+    return DetectorResult(score, flagged, crit_median if crit_median is not None else np.nan, info)
