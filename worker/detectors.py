@@ -7,6 +7,8 @@ that a detector still being written fails only when it is used, never at import 
 
 from __future__ import annotations
 
+import types
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -146,3 +148,36 @@ def get_detector(name: str) -> DetectorSpec:
     except KeyError:
         known = ", ".join(DETECTORS)
         raise ParameterError(f"unknown detector {name!r} (known: {known})") from None
+
+
+def parameter_table(model: type[BaseModel]) -> list[dict[str, Any]]:
+    """Name, type, default, range and description of each parameter of a stage model."""
+    rows = []
+    for name, info in model.model_fields.items():
+        if name == "detector":
+            continue
+        bounds = []
+        for meta in info.metadata:
+            for attr, symbol in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
+                value = getattr(meta, attr, None)
+                if value is not None:
+                    bounds.append(f"{symbol} {value}")
+        rows.append(
+            {
+                "name": name,
+                "type": _type_name(info.annotation),
+                "default": info.default,
+                "range": " and ".join(bounds) or None,
+                "description": info.description or "",
+            }
+        )
+    return rows
+
+
+def _type_name(annotation: Any) -> str:
+    origin = typing.get_origin(annotation)
+    if origin is typing.Literal:
+        return " | ".join(repr(a) for a in typing.get_args(annotation))
+    if origin in (typing.Union, types.UnionType):
+        return " | ".join(_type_name(a) for a in typing.get_args(annotation))
+    return getattr(annotation, "__name__", str(annotation))

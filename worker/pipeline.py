@@ -64,9 +64,23 @@ def validation_message(exc: ValidationError, *, option_style: bool = False) -> s
 
     ``pipeline.0.temporal.n1`` becomes ``pipeline[0].n1`` (or ``--n1`` with ``option_style``).
     """
-    parts = []
+    parts: list[str] = []
+    seen: set[tuple[str, ...]] = set()
+
+    def name_seen(_parts: list[str], loc: list[str]) -> bool:
+        key = tuple(loc)
+        if key in seen:
+            return True
+        seen.add(key)
+        return False
+
     for err in exc.errors():
         loc = [str(x) for x in err.get("loc", ())]
+        # A union reports one error per member, tagged with the member type: keep the field.
+        while loc and (loc[-1] in _TYPE_TAGS or "[" in loc[-1]):
+            loc.pop()
+        if name_seen(parts, loc):
+            continue
         # The discriminated union inserts the detector name after the index: drop it.
         cleaned: list[str] = []
         for i, item in enumerate(loc):
@@ -88,6 +102,9 @@ def validation_message(exc: ValidationError, *, option_style: bool = False) -> s
                 msg = f"{msg} (got {given!r})"
         parts.append(f"{name}: {msg}")
     return "; ".join(parts)
+
+
+_TYPE_TAGS = {"float", "int", "str", "bool", "list", "dict", "none"}
 
 
 def _stage_names() -> list[str]:
