@@ -531,6 +531,7 @@ def rewrite(
     n = int(in_header.point_count)
     compress = _is_compressed(in_header) if laz is None else laz
     header = _output_header(in_header, new_dims)
+    check_laz_output(name, header.point_format.id, compress)
     lo, hi = progress_span
     with _atomic_output(out_path) as tmp:
         with laspy.open(tmp, mode="w", header=header, do_compress=compress) as writer:
@@ -545,6 +546,19 @@ def rewrite(
                     message = f"writing {start:,} of {n:,} points"
                     progress(lo + (hi - lo) * start / max(n, 1), message)
             _write_evlrs(writer, header)
+
+
+#: Point formats whose waveform fields lazrs does not round-trip (checked with laspy 2.7/lazrs).
+LAZ_LOSSY_FORMATS = frozenset({9, 10})
+
+
+def check_laz_output(name: str, point_format: int, compress: bool) -> None:
+    """Refuse LAZ output where the LAZ backend would silently change the data."""
+    if compress and point_format in LAZ_LOSSY_FORMATS:
+        raise LasFormatError(
+            f"{name}: LAZ output of point format {point_format} is refused because lazrs does not "
+            f"keep its waveform fields intact; write LAS instead"
+        )
 
 
 def _write_evlrs(writer: laspy.LasWriter, header: laspy.LasHeader) -> None:
@@ -627,6 +641,7 @@ def write_filtered(
     if FLAGS_DIMENSION not in header.point_format.extra_dimension_names:
         raise LasFormatError(f"{result_path.name} has no {FLAGS_DIMENSION} dimension")
     written = 0
+    check_laz_output(result_path.name, header.point_format.id, laz)
     with _atomic_output(out_path) as tmp:
         with laspy.open(tmp, mode="w", header=header, do_compress=laz) as writer:
             for chunk in iter_chunks(result_path, chunk_points):

@@ -360,6 +360,8 @@ def process_file(
     del cloud
     t_detect = time.perf_counter()
     compress = facts.compressed if laz is None else laz
+    if laz is None and facts.point_format in lasio.LAZ_LOSSY_FORMATS:
+        compress = False  # lazrs would change the waveform fields; keep the data, write LAS
     lasio.write_result(
         in_path, out_path, flags=result.flags, scores=result.scores,
         classification=result.classification, laz=compress, chunk_points=chunk_points,
