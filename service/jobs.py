@@ -15,11 +15,12 @@ from pathlib import Path
 from typing import Any
 
 from service.problems import Problem
-from service.processes import CLOUD_INPUT, resolve_inputs
+from service.processes import CLOUD_INPUT, preflight, resolve_inputs
 from service.settings import Settings
 from service.store import ACTIVE, FINAL, Job, JobStatus, Store, Upload, User
 from worker import tasks
 from worker.errors import LasFormatError, LidarOutliersError
+from worker.params import PipelineParams
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +144,12 @@ class JobService:
         is a stored upload (hard-linked, so the upload can serve further jobs)."""
         active = self.check_active_limit(user)
         facts = las_facts_or_remove(source, name) if move else las_facts(source, name)
+        try:
+            preflight(PipelineParams.model_validate(params), int(facts.get("point_format", 0)))
+        except Problem:
+            if move:
+                source.unlink(missing_ok=True)
+            raise
         job_id = os.urandom(16).hex()
         laz = bool(facts.get("compressed"))
         target = tasks.input_path(self.settings, job_id, laz)

@@ -176,3 +176,23 @@ def summary(process_id: str, base_url: str = "") -> dict[str, Any]:
         "links": [{"href": f"{base_url}/processes/{process_id}", "rel": "self",
                    "type": "application/json"}]
     }
+
+
+def preflight(params: PipelineParams, point_format: int) -> None:
+    """Refuse before queueing what the worker would refuse at once: a patch ``k`` too small for
+    its ``alpha``, a detector twice in a pipeline, a noise class the point format cannot hold."""
+    from worker.errors import ParameterError
+
+    try:
+        from worker.pipeline import check_noise_class, resolve_stages
+
+        resolve_stages(params, None)
+        for stage in params.pipeline or []:
+            if stage.detector == "patch":
+                from algorithms.patch import check_k_alpha
+
+                check_k_alpha(stage.k, stage.alpha)
+        check_noise_class(params, point_format)
+    except ParameterError as exc:
+        raise Problem(422, "invalid-parameter", str(exc),
+                      errors=[{"parameter": "inputs", "message": str(exc)}]) from None

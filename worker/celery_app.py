@@ -35,7 +35,6 @@ def make_app() -> Celery:
         broker_transport_options={
             "visibility_timeout": settings.visibility_timeout,
             "priority_steps": PRIORITY_STEPS,
-            "sep": ":",
         },
         broker_connection_retry_on_startup=True,
         worker_cancel_long_running_tasks_on_connection_loss=True,

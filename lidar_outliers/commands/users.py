@@ -34,13 +34,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.users_action == "add":
             user, key = store.add_user(args.name)
-            print(f"created user {user.name!r} in {settings.db_path}; the key is shown only "
-                  "once:", file=sys.stderr)
-            print(key)
+            print(f"created user {user.name!r} in {settings.db_path}; its key (shown only "
+                  "once) is on the next line:")
+            print(key, flush=True)
         elif args.users_action == "list":
             for user in store.list_users():
                 state = f"revoked {user.revoked}" if user.revoked else "active"
-                print(f"{user.name}\tcreated {user.created}\t{state}")
+                name = user.name.split("#revoked-")[0]
+                print(f"{name}\tcreated {user.created}\t{state}")
         elif args.users_action == "revoke":
             store.revoke_user(args.name)
             print(f"revoked {args.name!r}")

@@ -1,0 +1,199 @@
+"""Real processes for the integration tests: redis-server, Celery workers, uvicorn, `serve`.
+
+Every process is started in its own process group and stopped by signalling the group, so the
+worker's pool processes go with it; :func:`assert_gone` checks that nothing is left.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import psutil
+
+ROOT = Path(__file__).resolve().parents[2]
+REDIS_SERVER = "/usr/bin/redis-server"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.1):
+    """Poll ``predicate`` until it returns something truthy; fail after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    last: Any = None
+    while time.monotonic() < deadline:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
+
+
+def wait_for_port(port: int, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    def open_() -> bool:
+        assert proc.poll() is None, f"{proc.args} exited with {proc.returncode}"
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return True
+        except OSError:
+            return False
+
+    wait_for(open_, timeout, f"port {port}")
+
+
+def stop_group(proc: subprocess.Popen, grace: float = 20.0) -> None:
+    """SIGTERM the process group, SIGKILL it after ``grace`` seconds, reap the leader."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        try:
+            proc.wait(timeout=grace)
+        except subprocess.TimeoutExpired:
+            pass
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
+
+
+def descendants(pid: int) -> list[int]:
+    try:
+        return [p.pid for p in psutil.Process(pid).children(recursive=True)]
+    except psutil.NoSuchProcess:
+        return []
+
+
+def alive(pids: list[int]) -> list[int]:
+    out = []
+    for pid in pids:
+        try:
+            if psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
+                out.append(pid)
+        except psutil.NoSuchProcess:
+            pass
+    return out
+
+
+class RedisServer:
+    def __init__(self, folder: Path) -> None:
+        self.port = free_port()
+        folder.mkdir(parents=True, exist_ok=True)
+        self.proc = subprocess.Popen(
+            [REDIS_SERVER, "--port", str(self.port), "--bind", "127.0.0.1", "--dir", str(folder),
+             "--save", "", "--appendonly", "yes", "--daemonize", "no", "--loglevel", "warning"],
+            start_new_session=True,
+        )
+        wait_for_port(self.port, self.proc)
+        self._next_db = 0
+
+    def new_url(self) -> str:
+        """A database of its own for each stack, so queues do not mix."""
+        self._next_db += 1
+        assert self._next_db < 16
+        return f"redis://127.0.0.1:{self.port}/{self._next_db}"
+
+    def stop(self) -> None:
+        stop_group(self.proc)
+
+
+class Stack:
+    """One deployment: a DATA_DIR, a Redis database, any number of workers and API processes."""
+
+    def __init__(self, data_dir: Path, redis_url: str, **settings: Any) -> None:
+        self.data_dir = data_dir
+        self.env = dict(os.environ, DATA_DIR=str(data_dir), REDIS_URL=redis_url,
+                        PYTHONUNBUFFERED="1",
+                        **{k.upper(): str(v) for k, v in settings.items()})
+        self.env.pop("PYTEST_CURRENT_TEST", None)
+        self.workers: list[subprocess.Popen] = []
+        self.api: subprocess.Popen | None = None
+        self.port = 0
+        self.logs = data_dir / "logs"
+        self.logs.mkdir(parents=True, exist_ok=True)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def _spawn(self, argv: list[str], log_name: str) -> subprocess.Popen:
+        log = open(self.logs / log_name, "ab")  # noqa: SIM115 - kept for the process's life
+        return subprocess.Popen(argv, env=self.env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+
+    def start_worker(self) -> subprocess.Popen:
+        n = len(self.workers) + 1
+        proc = self._spawn(
+            [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
+             "--pool=prefork", "--concurrency=1", "--loglevel=INFO", "--without-gossip",
+             "--without-mingle", "-n", f"w{n}-{os.getpid()}@%h"],
+            f"worker{n}.log",
+        )
+        self.workers.append(proc)
+        return proc
+
+    def start_api(self) -> None:
+        self.port = self.port or free_port()
+        self.api = self._spawn(
+            [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app",
+             "--host", "127.0.0.1", "--port", str(self.port)],
+            "api.log",
+        )
+        wait_for_port(self.port, self.api)
+
+    def stop_api(self) -> None:
+        if self.api is not None:
+            stop_group(self.api)
+            self.api = None
+
+    def wait_workers_ready(self, timeout: float = 120.0) -> None:
+        """Until every worker answers a ping (they have connected to Redis)."""
+        from celery import Celery
+
+        app = Celery(broker=self.env["REDIS_URL"])
+        try:
+            wait_for(lambda: len(app.control.ping(timeout=0.5) or []) >= len(self.workers),
+                     timeout, "the workers to answer a ping", interval=0.2)
+        finally:
+            app.close()
+
+    def add_user(self, name: str) -> str:
+        """Create a user with the real command line; the key is the last line of its output."""
+        out = subprocess.run(
+            [str(Path(sys.executable).parent / "lidar-outliers"), "users", "add", name],
+            env=self.env, cwd=ROOT, capture_output=True, text=True, timeout=60, check=True,
+        )
+        return out.stdout.strip().splitlines()[-1]
+
+    def client(self, key: str | None = None) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {key}"} if key else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=60.0)
+
+    def stop(self) -> None:
+        self.stop_api()
+        for proc in self.workers:
+            stop_group(proc)
+        self.workers = []
+
+
+def wait_job(client: httpx.Client, job_id: str, statuses: tuple[str, ...],
+             timeout: float = 180.0) -> dict:
+    def check() -> dict | None:
+        doc = client.get(f"/jobs/{job_id}").json()
+        return doc if doc["status"] in statuses else None
+
+    return wait_for(check, timeout, f"job {job_id} to be one of {statuses}", interval=0.2)
