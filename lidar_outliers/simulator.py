@@ -151,6 +151,12 @@ class SimulatedCloud:
     def __len__(self) -> int:
         return len(self.gps_time)
 
+    def scene_height(self, xyz: np.ndarray) -> np.ndarray:
+        """Height (m) of the bare asphalt or sidewalk, without texture, under each (n, 3) point."""
+        scene = Scene(length=Scene().length * self.scale)
+        x, y = xyz[:, 0], xyz[:, 1]
+        return np.where(np.abs(y) <= scene.half_width, scene.road_z(x, y), scene.sidewalk_z(x))
+
 
 # --------------------------------------------------------------------------------------------
 # Trajectory
