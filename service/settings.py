@@ -49,6 +49,11 @@ class Settings(BaseSettings):
     task_time_limit: int = Field(
         6 * 3600, gt=0, description="Hard time limit of one job in seconds (the worker is killed)."
     )
+    visibility_timeout: int = Field(
+        0, ge=0, description="Seconds after which Redis re-delivers a job whose worker vanished "
+        "(whole machine or worker process killed); must exceed TASK_TIME_LIMIT; 0 = "
+        "TASK_TIME_LIMIT + 600.",
+    )
     max_attempts: int = Field(
         2, ge=1, description="Deliveries of a job whose worker died before it is marked failed."
     )
@@ -58,14 +63,22 @@ class Settings(BaseSettings):
     retry_after_seconds: int = Field(30, ge=1, description="Retry-After sent with 429.")
 
     @model_validator(mode="after")
-    def _absolute_data_dir(self) -> Settings:
+    def _resolve(self) -> Settings:
         self.data_dir = self.data_dir.expanduser().resolve()
+        if self.visibility_timeout == 0:
+            self.visibility_timeout = self.task_time_limit + 600
+        if self.visibility_timeout <= self.task_time_limit:
+            # a job still running would be delivered a second time
+            raise ValueError(
+                f"VISIBILITY_TIMEOUT ({self.visibility_timeout}) must exceed TASK_TIME_LIMIT "
+                f"({self.task_time_limit})"
+            )
         return self
 
     @property
-    def visibility_timeout(self) -> int:
-        """Redis redelivers an unacknowledged job after this many seconds: longer than any job."""
-        return self.task_time_limit + 600
+    def soft_time_limit(self) -> int:
+        """The job gets SoftTimeLimitExceeded (and fails cleanly) this long before the kill."""
+        return max(1, self.task_time_limit - min(30, self.task_time_limit // 10))
 
     @property
     def db_path(self) -> Path:

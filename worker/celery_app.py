@@ -30,7 +30,7 @@ def make_app() -> Celery:
         task_serializer="json",
         accept_content=["json"],
         task_time_limit=settings.task_time_limit,
-        task_soft_time_limit=max(1, settings.task_time_limit - 30),
+        task_soft_time_limit=settings.soft_time_limit,
         task_default_priority=0,
         broker_transport_options={
             "visibility_timeout": settings.visibility_timeout,

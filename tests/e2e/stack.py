@@ -171,13 +171,17 @@ class Stack:
         finally:
             app.close()
 
-    def add_user(self, name: str) -> str:
-        """Create a user with the real command line; the key is the last line of its output."""
+    def run_cli(self, *args: str) -> str:
+        """Run `lidar-outliers ARGS` with this stack's settings; return its output."""
         out = subprocess.run(
-            [str(Path(sys.executable).parent / "lidar-outliers"), "users", "add", name],
+            [str(Path(sys.executable).parent / "lidar-outliers"), *args],
             env=self.env, cwd=ROOT, capture_output=True, text=True, timeout=60, check=True,
         )
-        return out.stdout.strip().splitlines()[-1]
+        return out.stdout
+
+    def add_user(self, name: str) -> str:
+        """Create a user with the real command line; the key is the last line of its output."""
+        return self.run_cli("users", "add", name).strip().splitlines()[-1]
 
     def client(self, key: str | None = None) -> httpx.Client:
         headers = {"Authorization": f"Bearer {key}"} if key else {}
