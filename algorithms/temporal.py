@@ -46,8 +46,10 @@ _MIN_ONE_MINUS_A0 = 1e-10
 #: Tested points above which ``estimate_sigma`` works on an evenly strided subsample.
 SIGMA_SAMPLE_POINTS = 250_000
 
-#: Points per parallel block in ``window_differences``.
+#: Points per parallel block in ``window_differences``, and the call size below which it runs
+#: on one thread.
 _BLOCK = 4096
+_PARALLEL_POINTS = 8 * _BLOCK
 
 
 # --------------------------------------------------------------------------------------------
@@ -146,7 +148,79 @@ def standardised_difference(z_k: float, z_p: float, variance_dz: float) -> float
     return (z_k - z_p) / math.sqrt(variance_dz)
 
 
+@njit(cache=True)
+def _differences_block(
+    t: np.ndarray,
+    z: np.ndarray,
+    sigma: np.ndarray,
+    targets: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    max_w: int,
+    first: int,
+    stop: int,
+    dz: np.ndarray,
+    sigma_dz: np.ndarray,
+) -> None:
+    """``window_differences`` for targets[first:stop], writing into dz and sigma_dz."""
+    m = z.shape[1]
+    unit_sigma = sigma.shape[0] == 0
+    delta = np.empty(max_w)
+    weight = np.ones(max_w)
+    variance = np.ones(max_w)
+    a = np.empty(max_w)
+    pred = np.empty(m)
+    for q in range(first, stop):
+        k = targets[q]
+        start = lo[q]
+        w = hi[q] - start
+        if w < MIN_SEGMENT_POINTS:
+            continue
+        t_k = t[k]
+        # Per-window time unit (largest |delta|, t sorted in the window): keeps the delta^4
+        # sums of eq. 14 near 1 whatever the time step.
+        unit = max(t_k - t[start], t[start + w - 1] - t_k)
+        if not unit > 0.0:
+            continue
+        inv_unit = 1.0 / unit
+        for i in range(w):
+            delta[i] = (t[start + i] - t_k) * inv_unit
+        if not unit_sigma:
+            for i in range(w):
+                s = sigma[start + i]
+                variance[i] = s * s
+                weight[i] = 1.0 / variance[i]
+        if not smoother_weights(delta, weight, a, w):
+            continue
+        if not 1.0 - a[k - start] > _MIN_ONE_MINUS_A0:
+            continue
+        predict_from_window(a, z, start, w, k, pred)
+        for j in range(m):
+            dz[q, j] = -pred[j]
+        sigma_dz[q] = math.sqrt(difference_variance(a, variance, w, k - start))
+
+
 @njit(cache=True, parallel=True)
+def _differences_parallel(
+    t: np.ndarray,
+    z: np.ndarray,
+    sigma: np.ndarray,
+    targets: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    max_w: int,
+    dz: np.ndarray,
+    sigma_dz: np.ndarray,
+) -> None:
+    """``_differences_block`` over blocks of _BLOCK targets on all threads."""
+    p = targets.shape[0]
+    n_blocks = (p + _BLOCK - 1) // _BLOCK
+    for b in prange(n_blocks):
+        _differences_block(
+            t, z, sigma, targets, lo, hi, max_w, b * _BLOCK, min(p, (b + 1) * _BLOCK), dz, sigma_dz
+        )
+
+
 def window_differences(
     t: np.ndarray,
     z: np.ndarray,
@@ -165,52 +239,25 @@ def window_differences(
 
     Returns dz (p, m) = z(k) - z_p(k) (eq. 15) and sigma_dz (p,) = sqrt(eq. 16); NaN for points
     whose window is degenerate (fewer than MIN_SEGMENT_POINTS rows or three distinct times, or
-    a_0(k) = 1).
-    Eq. 17 is dz / sigma_dz[:, None].
+    a_0(k) = 1). Eq. 17 is dz / sigma_dz[:, None]. Every point is computed alone, so the result
+    does not depend on how the points are split into calls or threads.
     """
-    p = targets.shape[0]
-    m = z.shape[1]
-    unit_sigma = sigma.shape[0] == 0
-    dz = np.full((p, m), np.nan)
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    z = np.ascontiguousarray(z, dtype=np.float64)
+    sigma = np.ascontiguousarray(sigma, dtype=np.float64)
+    targets = np.ascontiguousarray(targets, dtype=np.int64)
+    lo = np.ascontiguousarray(lo, dtype=np.int64)
+    hi = np.ascontiguousarray(hi, dtype=np.int64)
+    p = targets.size
+    dz = np.full((p, z.shape[1]), np.nan)
     sigma_dz = np.full(p, np.nan)
-    max_w = 1
-    for q in range(p):
-        max_w = max(max_w, hi[q] - lo[q])
-    n_blocks = (p + _BLOCK - 1) // _BLOCK
-    for b in prange(n_blocks):
-        delta = np.empty(max_w)
-        weight = np.ones(max_w)
-        variance = np.ones(max_w)
-        a = np.empty(max_w)
-        pred = np.empty(m)
-        for q in range(b * _BLOCK, min(p, (b + 1) * _BLOCK)):
-            k = targets[q]
-            start = lo[q]
-            w = hi[q] - start
-            if w < MIN_SEGMENT_POINTS:
-                continue
-            t_k = t[k]
-            # Per-window time unit (largest |delta|, t sorted in the window): keeps the delta^4
-            # sums of eq. 14 near 1 whatever the time step.
-            unit = max(t_k - t[start], t[start + w - 1] - t_k)
-            if not unit > 0.0:
-                continue
-            inv_unit = 1.0 / unit
-            for i in range(w):
-                delta[i] = (t[start + i] - t_k) * inv_unit
-            if not unit_sigma:
-                for i in range(w):
-                    s = sigma[start + i]
-                    variance[i] = s * s
-                    weight[i] = 1.0 / variance[i]
-            if not smoother_weights(delta, weight, a, w):
-                continue
-            if not 1.0 - a[k - start] > _MIN_ONE_MINUS_A0:
-                continue
-            predict_from_window(a, z, start, w, k, pred)
-            for j in range(m):
-                dz[q, j] = -pred[j]
-            sigma_dz[q] = math.sqrt(difference_variance(a, variance, w, k - start))
+    if p == 0:
+        return dz, sigma_dz
+    max_w = int(np.max(hi - lo))
+    if p < _PARALLEL_POINTS:  # thread start-up costs more than it saves on small calls
+        _differences_block(t, z, sigma, targets, lo, hi, max_w, 0, p, dz, sigma_dz)
+    else:
+        _differences_parallel(t, z, sigma, targets, lo, hi, max_w, dz, sigma_dz)
     return dz, sigma_dz
 
 
@@ -350,8 +397,6 @@ def _check_arrays(
     t = np.asarray(gps_time, dtype=np.float64)
     if t.shape != (xyz.shape[0],):
         raise ParameterError(f"gps_time must have shape ({xyz.shape[0]},), got {t.shape}")
-    if t.size and not np.isfinite(t).any():
-        raise MissingDimensionError("gps_time is all NaN: the temporal detector cannot run")
     if group is not None:
         group = np.asarray(group)
         if group.shape != t.shape:
@@ -518,6 +563,8 @@ def detect_temporal(
     p = _check_params(n1, n2, sigma, alpha, max_gap)
     xyz, t, group = _check_arrays(xyz, gps_time, group)
     n = t.size
+    if n and not np.isfinite(t).any():
+        raise MissingDimensionError("gps_time is all NaN: the temporal detector cannot run")
     s = _prepare(xyz, t, group, p)
     dz, sdz = _unit_differences(s)
     if p.sigma is None:
