@@ -66,11 +66,11 @@ class Scene:
 
     length: float = 15.0
     half_width: float = 5.5  # curb to curb / 2
-    crop_y: tuple[float, float] = (-6.8, 6.4)
+    crop_y: tuple[float, float] = (-6.2, 6.2)
     crown: float = 0.06  # road centre above its edges
     grade: float = 0.005  # dz/dx
     curb: float = 0.15
-    wall_y: float = 6.3
+    wall_y: float = 6.1
     wall_height: float = 3.0
     roughness: float = 0.0015  # RMS of the asphalt texture
     range_sigma: float = 0.003
@@ -419,7 +419,7 @@ def build_objects(scene: Scene, rng: np.random.Generator) -> Objects:
             z0 = scene.road_z(np.array([x0]), np.array([y_side * 4.4]))[0]
             cars.append([x0, y0, z0 + 0.25, x0 + 4.5, y0 + 1.8, z0 + 1.5])
     cars_arr = np.array(cars, dtype=float).reshape(-1, 6)
-    poles = np.column_stack([np.arange(3.0, L, 9.0), np.full(len(np.arange(3.0, L, 9.0)), -6.2)])
+    poles = np.column_stack([np.arange(3.0, L, 9.0), np.full(len(np.arange(3.0, L, 9.0)), -5.9)])
     n_pud = max(1, round(2 * L / 20))
     puddles = np.column_stack([
         rng.uniform(0.15, 0.85, n_pud) * L,
