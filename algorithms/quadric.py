@@ -132,23 +132,65 @@ def t_statistic(v: float, sigma0: float, q_vv: float) -> float:
 
 
 # ---------------------------------------------------------------------------------------------
+# Normal equations from weighted moments: N[p, q] = sum_i p_i B_ip B_iq, and every product of two
+# entries of eq. 23 is one of the 35 monomials x^i y^j z^l with i + j + l <= 4. Accumulating the 35
+# weighted monomials per point (a contiguous, vectorisable loop) instead of the 55 distinct
+# entries of N, and reusing the monomials (they do not change between iterations), is what makes
+# the per-point cost small.
+# ---------------------------------------------------------------------------------------------
+
+#: Exponents (x, y, z) of the 10 entries of B_i (eq. 23), in parameter order a1..a10.
+_ROW_EXPONENTS = np.array(
+    [[2, 0, 0], [0, 2, 0], [0, 0, 2], [1, 1, 0], [1, 0, 1], [0, 1, 1],
+     [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]], dtype=np.int64,
+)  # fmt: skip
+#: Exponents of the 35 monomials of degree <= 4.
+_MONOMIALS = np.array(
+    [[i, j, d - i - j] for d in range(5) for i in range(d, -1, -1) for j in range(d - i, -1, -1)],
+    dtype=np.int64,
+)
+_N_MONO = _MONOMIALS.shape[0]
+#: N_INDEX[p, q]: which monomial is B_ip * B_iq.
+_N_INDEX = np.array(
+    [
+        [
+            int(np.flatnonzero((_MONOMIALS == _ROW_EXPONENTS[p] + _ROW_EXPONENTS[q]).all(1))[0])
+            for q in range(N_PARAMS)
+        ]
+        for p in range(N_PARAMS)
+    ],
+    dtype=np.int64,
+)
+
+
+@njit(cache=True)
+def _monomials(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> None:
+    """out[i, j] = x_i^ex_j y_i^ey_j z_i^ez_j for the 35 monomials (active rows only)."""
+    pw = np.empty((3, 5))
+    for i in range(xyz.shape[0]):
+        if not active[i]:
+            continue
+        for c in range(3):
+            pw[c, 0] = 1.0
+            for e in range(1, 5):
+                pw[c, e] = pw[c, e - 1] * xyz[i, c]
+        for j in range(_N_MONO):
+            out[i, j] = pw[0, _MONOMIALS[j, 0]] * pw[1, _MONOMIALS[j, 1]] * pw[2, _MONOMIALS[j, 2]]
+
+
+# ---------------------------------------------------------------------------------------------
 # Small dense linear algebra without LAPACK calls (a call per patch would dominate the cost).
 # ---------------------------------------------------------------------------------------------
 
 
 @njit(cache=True)
-def _gauss_jordan(m: np.ndarray, r: np.ndarray) -> bool:
-    """Solve m x = r in place (r (s, c) becomes x) by Gauss-Jordan with partial pivoting.
+def _solve(m: np.ndarray, r: np.ndarray) -> bool:
+    """Solve m x = r in place (r (s, c) becomes x): Gaussian elimination, partial pivoting.
 
-    m is destroyed. Returns False when a pivot is zero relative to the largest entry of m.
+    m is destroyed. Returns False when a pivot is exactly zero or not finite (singular system).
     """
     s = m.shape[0]
     c = r.shape[1]
-    scale = 0.0
-    for i in range(s):
-        for j in range(s):
-            scale = max(scale, abs(m[i, j]))
-    tiny = scale * 1e-300 if scale > 0.0 else 1e-300
     for col in range(s):
         piv = col
         best = abs(m[col, col])
@@ -156,55 +198,150 @@ def _gauss_jordan(m: np.ndarray, r: np.ndarray) -> bool:
             if abs(m[i, col]) > best:
                 best = abs(m[i, col])
                 piv = i
-        if not best > tiny:
+        if not (best > 0.0 and best < math.inf):
             return False
         if piv != col:
-            for j in range(s):
+            for j in range(col, s):
                 m[col, j], m[piv, j] = m[piv, j], m[col, j]
             for j in range(c):
                 r[col, j], r[piv, j] = r[piv, j], r[col, j]
         inv = 1.0 / m[col, col]
-        for i in range(s):
-            if i == col:
-                continue
+        for i in range(col + 1, s):
             f = m[i, col] * inv
             if f == 0.0:
                 continue
-            for j in range(col, s):
+            for j in range(col + 1, s):
                 m[i, j] -= f * m[col, j]
             for j in range(c):
                 r[i, j] -= f * r[col, j]
-    for i in range(s):
+    for i in range(s - 1, -1, -1):
         inv = 1.0 / m[i, i]
         for j in range(c):
-            r[i, j] *= inv
+            acc = r[i, j]
+            for q in range(i + 1, s):
+                acc -= m[i, q] * r[q, j]
+            r[i, j] = acc * inv
     return True
 
 
 @njit(cache=True)
-def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> None:
-    """Unit eigenvector of the smallest eigenvalue of B^T B (active rows), into ``out`` (10,)."""
-    btb = np.zeros((N_PARAMS, N_PARAMS))
-    b = np.empty(N_PARAMS)
-    for i in range(xyz.shape[0]):
-        if not active[i]:
-            continue
-        design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
-        for p in range(N_PARAMS):
-            bp = b[p]
-            for q in range(p, N_PARAMS):
-                btb[p, q] += bp * b[q]
+def _algebraic_start(mono: np.ndarray, active: np.ndarray, out: np.ndarray) -> None:
+    """Unit eigenvector of the smallest eigenvalue of B^T B (active rows), into ``out`` (10,).
+
+    Inverse iteration (LU without a LAPACK call per patch): the smallest eigenvalue of B^T B is
+    the algebraic fit's residual and lies orders of magnitude below the next one (the monomial
+    columns differ in scale by (noise / patch radius)^2), so a few solves reach machine precision;
+    np.linalg.eigh is the fallback when they do not.
+    """
+    acc = np.zeros(_N_MONO)
+    for i in range(mono.shape[0]):
+        if active[i]:
+            for j in range(_N_MONO):
+                acc[j] += mono[i, j]
+    btb = np.empty((N_PARAMS, N_PARAMS))
+    trace = 0.0
     for p in range(N_PARAMS):
-        for q in range(p):
-            btb[p, q] = btb[q, p]
+        for q in range(N_PARAMS):
+            btb[p, q] = acc[_N_INDEX[p, q]]
+        trace += btb[p, p]
+    shifted = np.empty((N_PARAMS, N_PARAMS))
+    x = np.empty((N_PARAMS, 1))
+    for p in range(N_PARAMS):
+        out[p] = 1.0 / (1.0 + p)  # generic start, not orthogonal to any eigenvector in practice
+    for _ in range(INVERSE_ITERATIONS):
+        shifted[:, :] = btb
+        for p in range(N_PARAMS):
+            shifted[p, p] += 1e-15 * trace
+            x[p, 0] = out[p]
+        if not _solve(shifted, x):
+            break
+        norm = 0.0
+        dot = 0.0
+        for p in range(N_PARAMS):
+            norm += x[p, 0] * x[p, 0]
+            dot += x[p, 0] * out[p]
+        norm = math.sqrt(norm)
+        sign = 1.0 if dot >= 0.0 else -1.0
+        change = 0.0
+        for p in range(N_PARAMS):
+            new = sign * x[p, 0] / norm
+            change = max(change, abs(new - out[p]))
+            out[p] = new
+        if change < 1e-14:
+            return
     _, vecs = np.linalg.eigh(btb)
     for p in range(N_PARAMS):
         out[p] = vecs[p, 0]
 
 
+#: Inverse iterations for the algebraic start before falling back to a full eigendecomposition.
+INVERSE_ITERATIONS = 12
+
+
 # ---------------------------------------------------------------------------------------------
 # One surface: the iterative adjustment.
 # ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _adjust(
+    xyz: np.ndarray,
+    mono: np.ndarray,
+    active: np.ndarray,
+    var: np.ndarray,
+    a: np.ndarray,
+    m: np.ndarray,
+    m_copy: np.ndarray,
+    rhs: np.ndarray,
+    w: np.ndarray,
+    p_w: np.ndarray,
+    acc: np.ndarray,
+) -> bool:
+    """One adjustment linearised at ``a`` (10,): da into rhs[:10, 0]; False if it cannot be solved.
+
+    Leaves the bordered matrix in ``m_copy`` and w_i (eq. 24), p_i = 1/sigma_i^2 (eq. 30) of the
+    active rows in ``w`` and ``p_w``, for the residuals and cofactors of the last adjustment.
+    """
+    acc[:] = 0.0  # (35,) weighted monomial sums, scratch passed in to avoid an allocation
+    for q in range(N_PARAMS + 1):
+        rhs[q, 0] = 0.0
+    for i in range(xyz.shape[0]):
+        if not active[i]:
+            continue
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        wi = (
+            a[0] * mono[i, _N_INDEX[0, 9]] + a[1] * mono[i, _N_INDEX[1, 9]]
+            + a[2] * mono[i, _N_INDEX[2, 9]] + a[3] * mono[i, _N_INDEX[3, 9]]
+            + a[4] * mono[i, _N_INDEX[4, 9]] + a[5] * mono[i, _N_INDEX[5, 9]]
+            + a[6] * x + a[7] * y + a[8] * z + a[9]
+        )  # fmt: skip
+        ax, ay, az = gradient(a, x, y, z)
+        s2 = equivalent_variance(ax, ay, az, var[0], var[1], var[2])
+        if not (s2 > 0.0 and s2 < math.inf):
+            return False
+        pi = 1.0 / s2
+        w[i] = wi
+        p_w[i] = pi
+        for j in range(_N_MONO):
+            acc[j] += pi * mono[i, j]
+        pw = pi * wi
+        for q in range(N_PARAMS):
+            rhs[q, 0] -= pw * mono[i, _N_INDEX[q, 9]]
+    aa = 0.0
+    for p in range(N_PARAMS):
+        for q in range(N_PARAMS):
+            m[p, q] = acc[_N_INDEX[p, q]]
+        m[p, N_PARAMS] = a[p]
+        m[N_PARAMS, p] = a[p]
+        aa += a[p] * a[p]
+    m[N_PARAMS, N_PARAMS] = 0.0
+    rhs[N_PARAMS, 0] = 0.5 * (1.0 - aa)  # eq. 19 linearised: 2 a0.da = 1 - a0.a0
+    m_copy[:, :] = m
+    return _solve(m, rhs)
+
+
+#: SQUAREM step length bound (Varadhan & Roland 2008): alpha in [-ALPHA_MAX, -1].
+ALPHA_MAX = 8.0
 
 
 @njit(cache=True)
@@ -215,6 +352,7 @@ def _fit_one(
     max_iter: int,
     tol: float,
     t_first_only: bool,
+    accelerate: bool,
     a: np.ndarray,
     v_out: np.ndarray,
     t_out: np.ndarray,
@@ -225,6 +363,11 @@ def _fit_one(
     receive v_i and T_i of the active rows (inactive rows are left untouched; with
     ``t_first_only`` only row 0 gets T). Returns (sigma0, iterations, converged); sigma0 is NaN
     and converged False when the system is singular or has no redundancy.
+
+    The fixed-point iteration a <- a + da(a) converges linearly. With ``accelerate`` every pair
+    of steps is extrapolated by SQUAREM (squared polynomial extrapolation); the fixed point, the
+    stopping rule (a plain step with ||da|| < tol) and the reported quantities (those of that last
+    plain step) are unchanged, only fewer steps are needed. ``iterations`` counts adjustments.
     """
     n = xyz.shape[0]
     n_act = 0
@@ -233,96 +376,90 @@ def _fit_one(
             n_act += 1
     if n_act <= DOF_LOSS:
         return math.nan, 0, False
-    _algebraic_start(xyz, active, a)
+    mono = np.empty((n, _N_MONO))
+    _monomials(xyz, active, mono)
+    _algebraic_start(mono, active, a)
 
     s = N_PARAMS + 1
     m = np.empty((s, s))
     m_last = np.empty((s, s))
     rhs = np.empty((s, 1))
-    b = np.empty(N_PARAMS)
     da = np.zeros(N_PARAMS)
+    da0 = np.zeros(N_PARAMS)
+    a_base = np.empty(N_PARAMS)
     w = np.empty(n)
     p_w = np.empty(n)
+    acc = np.empty(_N_MONO)
 
     iterations = 0
     converged = False
-    for _ in range(max_iter):
+    first_of_pair = True
+    while iterations < max_iter:
         iterations += 1
-        for r in range(s):
-            for c in range(s):
-                m[r, c] = 0.0
-            rhs[r, 0] = 0.0
-        for i in range(n):
-            if not active[i]:
-                continue
-            x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-            design_row(x, y, z, b)
-            wi = 0.0
-            for q in range(N_PARAMS):
-                wi += b[q] * a[q]  # eq. 24
-            ax, ay, az = gradient(a, x, y, z)
-            s2 = equivalent_variance(ax, ay, az, var[0], var[1], var[2])
-            if not s2 > 0.0:
-                return math.nan, iterations, False
-            pi = 1.0 / s2
-            w[i] = wi
-            p_w[i] = pi
-            for q in range(N_PARAMS):
-                pb = pi * b[q]
-                rhs[q, 0] -= pb * wi
-                for c in range(q, N_PARAMS):
-                    m[q, c] += pb * b[c]
-        aa = 0.0
-        for q in range(N_PARAMS):
-            for c in range(q):
-                m[q, c] = m[c, q]
-            m[q, N_PARAMS] = a[q]
-            m[N_PARAMS, q] = a[q]
-            aa += a[q] * a[q]
-        m[N_PARAMS, N_PARAMS] = 0.0
-        rhs[N_PARAMS, 0] = 0.5 * (1.0 - aa)  # eq. 19 linearised
-        m_last[:, :] = m
-        if not _gauss_jordan(m, rhs):
+        if not _adjust(xyz, mono, active, var, a, m, m_last, rhs, w, p_w, acc):
             return math.nan, iterations, False
         step = 0.0
         for q in range(N_PARAMS):
             da[q] = rhs[q, 0]
             step += da[q] * da[q]
+        if first_of_pair:
+            a_base[:] = a
+            da0[:] = da
+        for q in range(N_PARAMS):
             a[q] += da[q]
         if math.sqrt(step) < tol:
             converged = True
             break
+        if accelerate and not first_of_pair:
+            _squarem(a_base, da0, da, a)
+        first_of_pair = not first_of_pair
 
     # Residuals (eq. 29) and their cofactors from the last adjustment solved.
     vpv = 0.0
     for i in range(n):
         if not active[i]:
             continue
-        design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
-        vi = w[i]
-        for q in range(N_PARAMS):
-            vi += b[q] * da[q]
+        vi = w[i] + da[6] * xyz[i, 0] + da[7] * xyz[i, 1] + da[8] * xyz[i, 2] + da[9]
+        for q in range(6):
+            vi += da[q] * mono[i, _N_INDEX[q, 9]]
         v_out[i] = vi
         vpv += p_w[i] * vi * vi
     sigma0 = math.sqrt(vpv / (n_act - DOF_LOSS))
-    inv = np.zeros((s, s))
-    for r in range(s):
-        inv[r, r] = 1.0
-    if not _gauss_jordan(m_last, inv):
+    # Q_aa b_i for the rows tested: one solve with the bordered matrix, rhs (b_i; 0) per row.
+    n_rows = 1 if t_first_only else n
+    cols = np.zeros((s, n_rows))
+    for i in range(n_rows):
+        if active[i]:
+            for q in range(N_PARAMS):
+                cols[q, i] = mono[i, _N_INDEX[q, 9]]
+    if not _solve(m_last, cols):
         return math.nan, iterations, False
-    for i in range(n):
-        if not active[i] or (t_first_only and i > 0):
+    for i in range(n_rows):
+        if not active[i]:
             continue
-        design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
         bqb = 0.0
         for q in range(N_PARAMS):
-            acc = 0.0
-            for c in range(N_PARAMS):
-                acc += inv[q, c] * b[c]
-            bqb += b[q] * acc
-        t_out[i] = t_statistic(v_out[i], sigma0, 1.0 / p_w[i] - bqb)
+            bqb += mono[i, _N_INDEX[q, 9]] * cols[q, i]
+        t_out[i] = t_statistic(v_out[i], sigma0, 1.0 / p_w[i] - bqb)  # q_vv = 1/p_i - B Q_aa B^T
     _canonical_sign(a)
     return sigma0, iterations, converged
+
+
+@njit(cache=True)
+def _squarem(a0: np.ndarray, r: np.ndarray, da1: np.ndarray, a: np.ndarray) -> None:
+    """SQUAREM extrapolation from a0 after steps r = G(a0) - a0 and da1: new iterate into ``a``."""
+    rr = 0.0
+    vv = 0.0
+    for q in range(N_PARAMS):
+        d = da1[q] - r[q]
+        rr += r[q] * r[q]
+        vv += d * d
+    if not vv > 0.0:
+        return
+    alpha = -math.sqrt(rr / vv)
+    alpha = min(max(alpha, -ALPHA_MAX), -1.0)
+    for q in range(N_PARAMS):
+        a[q] = a0[q] - 2.0 * alpha * r[q] + alpha * alpha * (da1[q] - r[q])
 
 
 @njit(cache=True, inline="always")
@@ -371,6 +508,7 @@ def _fit_patches(
     max_iter: int,
     tol: float,
     t_first_only: bool,
+    accelerate: bool,
     params: np.ndarray,
     centroid: np.ndarray,
     v: np.ndarray,
@@ -385,7 +523,7 @@ def _fit_patches(
         local = np.empty((k, 3))
         _centre(patches[j], active, local, centroid[j])
         s0, it, ok = _fit_one(
-            local, active, var, max_iter, tol, t_first_only, params[j], v[j], t[j]
+            local, active, var, max_iter, tol, t_first_only, accelerate, params[j], v[j], t[j]
         )
         sigma0[j] = s0
         iterations[j] = it
@@ -407,6 +545,7 @@ def fit_quadrics(
     max_iter: int = 50,
     tol: float = 1e-10,
     t_first_only: bool = False,
+    accelerate: bool = True,
 ) -> QuadricFit:
     """Fit the quadric of eqs. 18-19 to each of m patches of k points (parallel over patches).
 
@@ -423,6 +562,9 @@ def fit_quadrics(
     t_first_only : bool
         Compute T_i (eq. 31) only for the first point of each patch (the patch detector's tested
         point); the other entries of ``t_stat`` are NaN.
+    accelerate : bool
+        SQUAREM extrapolation of the fixed-point iteration (same fixed point, fewer steps);
+        False gives the plain iteration step for step.
 
     Returns
     -------
@@ -444,7 +586,7 @@ def fit_quadrics(
     if m:
         _fit_patches(
             pts, _variances(sigma), int(max_iter), float(tol), bool(t_first_only),
-            params, centroid, v, t, sigma0, iterations, converged,
+            bool(accelerate), params, centroid, v, t, sigma0, iterations, converged,
         )  # fmt: skip
     return QuadricFit(params, centroid, v, t, sigma0, iterations, converged)
 
@@ -460,6 +602,7 @@ def fit_masked(
     centroid: np.ndarray,
     v: np.ndarray,
     t: np.ndarray,
+    accelerate: bool = True,
 ) -> tuple[float, int, bool]:
     """Fit one quadric to the rows of ``xyz`` (n, 3) where ``active`` (n,) is True.
 
@@ -470,7 +613,7 @@ def fit_masked(
     """
     local = np.empty((xyz.shape[0], 3))
     _centre(xyz, active, local, centroid)
-    return _fit_one(local, active, var, max_iter, tol, False, params, v, t)
+    return _fit_one(local, active, var, max_iter, tol, False, accelerate, params, v, t)
 
 
 def min_patch_size(alpha: float) -> int:
