@@ -40,22 +40,29 @@ def fail(message: str, status: int) -> None:
     sys.exit(status)
 
 
-def command_modules() -> dict[str, ModuleType]:
-    """Sub-command modules by module name; one that fails to import is left out."""
+def command_modules(only: str | None = None) -> dict[str, ModuleType]:
+    """Sub-command modules by module name; one that fails to import is left out.
+
+    With ``only`` naming a module, just that one is imported (start-up time: the service
+    commands pull in FastAPI and Celery, which ``detect`` does not need).
+    """
     from lidar_outliers import commands
 
     found = {}
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
+    names = sorted(m.name for m in pkgutil.iter_modules(commands.__path__))
+    if only in names:
+        names = [only]
+    for name in names:
+        if name.startswith("_"):
             continue
         try:
-            module = importlib.import_module(f"{commands.__name__}.{info.name}")
+            module = importlib.import_module(f"{commands.__name__}.{name}")
         except Exception:  # a colleague's broken module must not break the other commands
             if os.environ.get("LIDAR_OUTLIERS_DEBUG"):
                 raise
             continue
         if hasattr(module, "register"):
-            found[info.name] = module
+            found[name] = module
     return found
 
 
@@ -91,7 +98,8 @@ def _split_command(argv: list[str], parser: Parser) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        modules = command_modules()
+        first = next((a for a in argv if not a.startswith("-")), None)
+        modules = command_modules(only=first)
         parser = build_parser(modules)
         command = _split_command(argv, parser)
         extra = None

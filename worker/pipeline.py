@@ -94,8 +94,11 @@ def validation_message(exc: ValidationError, *, option_style: bool = False) -> s
         msg = msg.removeprefix("Value error, ")
         if err.get("type") == "extra_forbidden":
             msg = "unknown parameter"
+        elif err.get("type") == "union_tag_not_found":
+            msg = f"each stage needs a \"detector\" key (one of: {', '.join(_stage_names())})"
         elif err.get("type") == "union_tag_invalid":
-            msg = f"unknown detector {err.get('input')!r} (known: {', '.join(_stage_names())})"
+            tag = (err.get("ctx") or {}).get("tag", err.get("input"))
+            msg = f"unknown detector {tag!r} (known: {', '.join(_stage_names())})"
         elif "input" in err and err.get("type") not in ("missing",):
             given = err["input"]
             if not isinstance(given, dict | list):
@@ -133,7 +136,7 @@ def usable_gps_time(gps_time: np.ndarray | None) -> tuple[bool, str]:
     if gps_time is None:
         return False, "the point format has no gps_time"
     finite = gps_time[np.isfinite(gps_time)]
-    if gps_time.size >= 2 and finite.size == 0:
+    if gps_time.size and finite.size == 0:
         return False, "gps_time is NaN in every point"
     if finite.size >= 2 and finite.min() == finite.max():
         return False, f"gps_time is the same ({finite[0]!r}) in every point"

@@ -1,0 +1,230 @@
+"""worker.pipeline: stage semantics, classes, reference-class statistics, precision, progress."""
+
+from __future__ import annotations
+
+import json
+
+import laspy
+import numpy as np
+import pytest
+
+from tests.worker.conftest import scan_line_cloud, write_las
+from worker import lasio
+from worker.errors import ParameterError
+from worker.params import PipelineParams
+from worker.pipeline import (
+    parse_pipeline_params,
+    process_file,
+    resolve_stages,
+    run_pipeline,
+    usable_gps_time,
+)
+
+
+def _cloud(xyz: np.ndarray, t: np.ndarray | None, cls: np.ndarray | None = None) -> lasio.Cloud:
+    n = xyz.shape[0]
+    zeros = np.zeros(n, np.uint8)
+    return lasio.Cloud(
+        xyz=xyz, origin=np.zeros(3), gps_time=t, point_source_id=np.ones(n, np.uint16),
+        classification=zeros.copy() if cls is None else cls, return_number=zeros + 1,
+        number_of_returns=zeros + 1,
+    )
+
+
+@pytest.fixture
+def spiky(rng):
+    xyz, t, spiked = scan_line_cloud(3000, rng, spikes=30, spike_size=0.5)
+    return xyz, t, spiked
+
+
+def test_later_stage_sees_only_points_earlier_stages_left(spiky):
+    from algorithms.section import detect_section
+
+    xyz, t, _ = spiky
+    params = PipelineParams.model_validate(
+        {"pipeline": [{"detector": "temporal", "sigma": 0.003},
+                      {"detector": "section", "section_size": 4.0, "sigma": 0.003}]}
+    )
+    result = run_pipeline(_cloud(xyz, t), params)
+    by_temporal = (result.flags & 1) != 0
+    assert by_temporal.sum() >= 30
+    rest = ~by_temporal
+    # The section stage never saw the temporal outliers...
+    assert np.all(np.isnan(result.scores["section"][by_temporal]))
+    assert result.statistics["stages"][1]["points_in"] == int(rest.sum())
+    # ...and on the others it is exactly the detector run on the remaining points alone.
+    direct = detect_section(xyz[rest], section_size=4.0, sigma=0.003, alpha=0.001)
+    np.testing.assert_array_equal(result.scores["section"][rest],
+                                  direct.score.astype(np.float32))
+    np.testing.assert_array_equal((result.flags[rest] & 4) != 0, direct.flagged)
+    assert not np.any((result.flags & 1) & (result.flags & 4))
+    assert result.scores["temporal"].dtype == np.float32
+
+
+def test_classes_noise_and_ground(spiky):
+    ground = pytest.importorskip("algorithms.ground")
+    xyz, t, _ = spiky
+    cls = np.full(len(t), 5, np.uint8)
+    params = PipelineParams.model_validate(
+        {"pipeline": [{"detector": "temporal", "sigma": 0.003}, {"detector": "ground"}],
+         "noise_class": 18}
+    )
+    result = run_pipeline(_cloud(xyz, t, cls), params)
+    flagged = result.flags != 0
+    assert np.all(result.classification[flagged] == 18)
+    expected = ground.classify_ground(xyz[~flagged], slope_threshold=45.0, max_iterations=50)
+    np.testing.assert_array_equal(result.classification[~flagged],
+                                  np.where(expected.is_ground, 2, 1))
+    stage = result.statistics["stages"][1]
+    assert stage["points_ground"] + stage["points_other"] == int((~flagged).sum())
+    assert "ground" not in result.scores
+
+
+def test_classify_off_leaves_classes_and_file_untouched(tmp_path, spiky):
+    xyz, t, _ = spiky
+    cls = np.random.default_rng(1).integers(0, 6, len(t)).astype(np.uint8)
+    src = write_las(tmp_path / "in.las", xyz, gps_time=t, classification=cls)
+    params = {"pipeline": [{"detector": "temporal", "sigma": 0.003}], "classify": False}
+    stats = process_file(src, tmp_path / "off.las", params)
+    off = laspy.read(tmp_path / "off.las")
+    np.testing.assert_array_equal(off.classification, cls)
+    assert stats["overall"]["points_flagged"] == int((np.asarray(off.outlier_flags) != 0).sum()) > 0
+    process_file(src, tmp_path / "on.las", {**params, "classify": True})
+    on = laspy.read(tmp_path / "on.las")
+    flagged = np.asarray(on.outlier_flags) != 0
+    np.testing.assert_array_equal(np.asarray(on.classification)[flagged], 7)
+    np.testing.assert_array_equal(np.asarray(on.classification)[~flagged], cls[~flagged])
+
+
+def test_reference_classes_confusion_counts(tmp_path, spiky):
+    xyz, t, spiked = spiky
+    cls = np.ones(len(t), np.uint8)
+    cls[spiked] = 7
+    cls[np.flatnonzero(~spiked)[:5]] = 18  # "noise" the detector cannot see
+    src = write_las(tmp_path / "in.las", xyz, gps_time=t, classification=cls)
+    stats = process_file(src, tmp_path / "out.las",
+                         {"pipeline": [{"detector": "temporal", "sigma": 0.003}],
+                          "reference_classes": [7, 18]})
+    flagged = np.asarray(laspy.read(tmp_path / "out.las").outlier_flags) != 0
+    truth = np.isin(cls, [7, 18])
+    conf = stats["stages"][0]["confusion"]
+    assert conf["outliers"] == int(truth.sum()) == 35
+    assert conf["outliers_identified"] == int((truth & flagged).sum())
+    assert conf["non_outliers_identified"] == int((~truth & flagged).sum())
+    assert conf["outliers_missed"] == int((truth & ~flagged).sum())
+    assert conf["pct_cloud_identified"] == pytest.approx(100 * flagged.sum() / len(t))
+    assert stats["overall"]["confusion"] == conf
+    json.dumps(stats, allow_nan=False)
+
+
+def test_ground_scores_with_reference_class_2(spiky):
+    pytest.importorskip("algorithms.ground")
+    xyz, t, _ = spiky
+    cls = np.where(xyz[:, 2] < 0, 2, 1).astype(np.uint8)
+    params = PipelineParams.model_validate(
+        {"pipeline": [{"detector": "ground"}], "reference_classes": [2]}
+    )
+    result = run_pipeline(_cloud(xyz, t, cls), params)
+    scores = result.statistics["stages"][0]["ground_scores"]
+    predicted = result.classification == 2
+    truth = cls == 2
+    assert scores["ground_as_object"] == int((truth & ~predicted).sum())
+    assert scores["object_as_ground"] == int((~truth & predicted).sum())
+    assert "confusion" not in result.statistics["overall"]  # no noise classes named
+
+
+def test_default_pipeline_and_reason():
+    t = np.linspace(0, 1, 50)
+    stages, note = resolve_stages(PipelineParams(), t)
+    assert [s.detector for s in stages] == ["temporal", "patch"]
+    assert note["pipeline_source"] == "default"
+    for gps, why in ((None, "no gps_time"), (np.zeros(50), "same"), (np.full(3, np.nan), "NaN")):
+        stages, note = resolve_stages(PipelineParams(), gps)
+        assert [s.detector for s in stages] == ["patch"]
+        assert why in note["default_reason"] and "patch" in note["default_reason"]
+        assert usable_gps_time(gps)[0] is False
+    stages, note = resolve_stages(PipelineParams(pipeline=[{"detector": "section"}]), None)
+    assert note == {"pipeline_source": "given"}
+
+
+def test_default_pipeline_end_to_end_without_gps_time(tmp_path, rng):
+    xy = rng.uniform(0, 3, (300, 2))
+    xyz = np.column_stack([xy, rng.normal(0, 0.003, 300)])
+    src = write_las(tmp_path / "pf0.las", xyz, point_format=0)
+    stats = process_file(src, tmp_path / "out.las")
+    assert [s["detector"] for s in stats["stages"]] == ["patch"]
+    assert "no gps_time" in stats["default_reason"]
+    assert set(laspy.read(tmp_path / "out.las").point_format.extra_dimension_names) == {
+        "outlier_flags", "patch_score"}
+
+
+def test_far_coordinates_and_late_gps_time_give_the_same_flags(tmp_path, spiky):
+    xyz, t, _ = spiky
+    params = {"pipeline": [{"detector": "temporal"}, {"detector": "section", "sigma": 0.003}]}
+    far = np.array([4_999_000.0, 5_000_000.0, 100.0])
+    near_file = write_las(tmp_path / "near.las", xyz, gps_time=t)
+    far_file = write_las(tmp_path / "far.las", xyz + far, gps_time=t + 500_000.0,
+                         offsets=tuple(far))
+    s_near = process_file(near_file, tmp_path / "near_out.las", params)
+    s_far = process_file(far_file, tmp_path / "far_out.las", params)
+    a, b = laspy.read(tmp_path / "near_out.las"), laspy.read(tmp_path / "far_out.las")
+    assert np.asarray(a.outlier_flags).any()
+    np.testing.assert_array_equal(a.outlier_flags, b.outlier_flags)
+    np.testing.assert_allclose(a.temporal_score, b.temporal_score, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(a.section_score, b.section_score, rtol=1e-5, atol=1e-5)
+    # Time steps of 1e-4 s next to 5e5 s carry ~1e-6 relative rounding: sigma agrees to that.
+    sigma_near, sigma_far = (s["stages"][0]["info"]["sigma"] for s in (s_near, s_far))
+    assert sigma_near == pytest.approx(sigma_far, rel=1e-4)
+
+
+def test_progress_is_reported_and_its_exception_propagates(tmp_path, spiky):
+    xyz, t, _ = spiky
+    src = write_las(tmp_path / "in.las", xyz, gps_time=t)
+    seen: list[tuple[float, str]] = []
+    process_file(src, tmp_path / "ok.las", {"pipeline": [{"detector": "temporal"}]},
+                 progress=lambda f, m: seen.append((f, m)), chunk_points=500)
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
+    messages = " ".join(m for _, m in seen)
+    assert "reading" in messages and "temporal" in messages and "writing" in messages
+
+    class Cancelled(Exception):
+        pass
+
+    for stop_at in ("temporal", "writing"):
+        def progress(fraction: float, message: str, stop_at=stop_at) -> None:
+            if stop_at in message:
+                raise Cancelled(stop_at)
+
+        out_dir = tmp_path / stop_at
+        with pytest.raises(Cancelled):
+            process_file(src, out_dir / "out.las", {"pipeline": [{"detector": "temporal"}]},
+                         progress=progress, stats_path=out_dir / "s.json", chunk_points=500)
+        assert not out_dir.exists() or list(out_dir.iterdir()) == []
+
+
+def test_empty_file_is_processed(tmp_path):
+    src = write_las(tmp_path / "empty.las", np.zeros((0, 3)), gps_time=np.zeros(0))
+    stats = process_file(src, tmp_path / "out.las", {"pipeline": [{"detector": "temporal"}]})
+    assert stats["stages"][0]["skipped"] and stats["overall"]["points"] == 0
+    assert laspy.read(tmp_path / "out.las").header.point_count == 0
+
+
+def test_parameter_errors_name_the_field(tmp_path, spiky):
+    with pytest.raises(ParameterError, match=r"pipeline\[0\]\.n1: .*greater than or equal to 1"):
+        parse_pipeline_params({"pipeline": [{"detector": "temporal", "n1": 0}]})
+    with pytest.raises(ParameterError, match=r"pipeline\[1\]\.kk: unknown parameter"):
+        parse_pipeline_params('{"pipeline": [{"detector": "temporal"}, {"detector": "patch", '
+                              '"kk": 3}]}')
+    with pytest.raises(ParameterError, match="unknown detector 'median'"):
+        parse_pipeline_params({"pipeline": [{"detector": "median"}]})
+    with pytest.raises(ParameterError, match="not valid JSON"):
+        parse_pipeline_params("{")
+    with pytest.raises(ParameterError, match="appears twice"):
+        resolve_stages(PipelineParams(pipeline=[{"detector": "patch"}, {"detector": "patch"}]),
+                       None)
+    xyz, t, _ = spiky
+    src = write_las(tmp_path / "in.las", xyz, gps_time=t, point_format=1)
+    with pytest.raises(ParameterError, match="noise_class 40 does not fit point format 1"):
+        process_file(src, tmp_path / "out.las", {"noise_class": 40})
+    assert not (tmp_path / "out.las").exists()
