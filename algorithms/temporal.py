@@ -22,8 +22,9 @@ detector and ``TemporalStream`` the streaming one (identical results for fixed s
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
@@ -321,6 +322,60 @@ def segment_windows(
     return lo, hi, n_segments, n_short
 
 
+@njit(cache=True)
+def stream_windows(
+    t: np.ndarray, max_gap: float, seg_start: int, done: int, n1: int, n2: int, final: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int, int]:
+    """The rows of one group's stream buffer that can be scored now, with their windows.
+
+    t : (n,) sorted times of the buffer. seg_start : row where the buffer's first segment began
+    (<= 0: it may have begun in an earlier chunk). done : rows before it are scored already.
+    A segment ended by a time gap (or by ``final``) gets the batch rule of ``segment_windows``.
+    In the open last segment a row is final once n2 rows follow it and the segment holds
+    n1 + n2 + 1 rows: its window [max(k - n1, start), + n1 + n2 + 1) cannot shift any more.
+
+    Returns targets, lo, hi (p,) int64, the new ``done``, the open segment's start row, and the
+    numbers of segments closed and of those shorter than MIN_SEGMENT_POINTS.
+    """
+    n = t.shape[0]
+    size = n1 + n2 + 1
+    targets = np.empty(n, dtype=np.int64)
+    lo = np.empty(n, dtype=np.int64)
+    hi = np.empty(n, dtype=np.int64)
+    count = 0
+    n_segments = 0
+    n_short = 0
+    for r in range(1, n + 1):
+        if r < n and not t[r] - t[r - 1] > max_gap:
+            continue
+        first = max(done, seg_start)
+        if r < n or final:  # segment [seg_start, r) is closed
+            for k in range(first, r):
+                targets[count] = k
+                if r - seg_start < size:
+                    lo[count] = seg_start
+                    hi[count] = r
+                else:
+                    lo[count] = min(max(k - n1, seg_start), r - size)
+                    hi[count] = lo[count] + size
+                count += 1
+            n_segments += 1
+            if r - seg_start < MIN_SEGMENT_POINTS:
+                n_short += 1
+            done = r
+            seg_start = r
+        else:  # the open segment [seg_start, n)
+            done = first
+            if n - seg_start >= size:
+                for k in range(first, n - n2):
+                    targets[count] = k
+                    lo[count] = max(k - n1, seg_start)
+                    hi[count] = lo[count] + size
+                    count += 1
+                    done = k + 1
+    return targets[:count], lo[:count], hi[:count], done, seg_start, n_segments, n_short
+
+
 def _median_positive_step(t: np.ndarray) -> float:
     """Median of the positive steps of a sorted time series; NaN if it has none."""
     dt = np.diff(t)
@@ -341,7 +396,6 @@ class _Params:
     critical_value: float
     sigma: np.ndarray | None  # (3,) metres, None for "auto"
     max_gap: float | None  # seconds, None for "auto"
-    info: dict = field(default_factory=dict)
 
 
 def _check_params(
@@ -355,7 +409,7 @@ def _check_params(
             f"n1 + n2 must be >= 3 (a quadratic needs three neighbours to predict a point), "
             f"got n1={n1}, n2={n2}"
         )
-    if isinstance(alpha, bool) or not isinstance(alpha, int | float) or not 0.0 < alpha < 0.5:
+    if isinstance(alpha, bool) or not isinstance(alpha, numbers.Real) or not 0.0 < alpha < 0.5:
         raise ParameterError(f"alpha must be in (0, 0.5), got {alpha!r}")
     sigma_arr: np.ndarray | None = None
     if isinstance(sigma, str):
@@ -827,50 +881,19 @@ class TemporalStream:
         if gid not in self._gap_by_group:
             self._gap_by_group[gid] = tail.max_gap if math.isfinite(tail.max_gap) else None
 
-        n = t.size
-        size = self._size
-        n1, n2 = self._p.n1, self._p.n2
-        bounds = np.r_[0, np.flatnonzero(np.diff(t) > tail.max_gap) + 1, n].astype(np.int64)
-        targets, lo, hi = [], [], []
-        done = tail.n_done  # rows before this one are scored
-        seg_start = -tail.seg_pos0  # the open segment may have begun before row 0
-        for j in range(bounds.size - 1):
-            a, b = int(bounds[j]), int(bounds[j + 1])
-            if j > 0:
-                seg_start = a
-            first = max(a, done)
-            if final or j < bounds.size - 2:  # closed: the exact batch rule
-                rows = np.arange(first, b, dtype=np.int64)
-                w_lo, w_hi = window_bounds(
-                    rows, np.full(rows.size, seg_start), np.full(rows.size, b), n1, n2
-                )
-                self._segments += 1
-                self._short_segments += int(b - seg_start < MIN_SEGMENT_POINTS)
-                done = b
-            else:
-                # Open segment: a row is final once n2 rows follow it and the segment holds
-                # n1 + n2 + 1 rows; its window [max(k - n1, start), +size) cannot shift any more.
-                done = first
-                if n - seg_start < size:
-                    break
-                rows = np.arange(first, max(first, n - n2), dtype=np.int64)
-                w_lo = np.maximum(rows - n1, seg_start)
-                w_hi = w_lo + size
-                done = first + rows.size
-            targets.append(rows)
-            lo.append(w_lo)
-            hi.append(w_hi)
-
+        targets, lo, hi, done, seg_start, n_seg, n_short = stream_windows(
+            t, tail.max_gap, -tail.seg_pos0, tail.n_done, self._p.n1, self._p.n2, final
+        )
+        self._segments += n_seg
+        self._short_segments += n_short
         score = np.zeros(0)
-        tg = np.concatenate(targets) if targets else np.zeros(0, dtype=np.int64)
-        if tg.size:
-            dz, sdz = window_differences(
-                t, xyz, np.empty(0), tg, np.concatenate(lo), np.concatenate(hi)
-            )
+        if targets.size:
+            dz, sdz = window_differences(t, xyz, np.empty(0), targets, lo, hi)
             score = scores_from_differences(dz, sdz, self._sigma)
         # Keep the open segment's pending rows and up to n1 + n2 rows of context before them.
-        keep = n if final else max(0, seg_start, done - (size - 1))
+        n = t.size
+        keep = n if final else max(0, seg_start, done - (self._size - 1))
         tail.t, tail.xyz, tail.index = t[keep:], xyz[keep:], index[keep:]
         tail.seg_pos0 = keep - seg_start
         tail.n_done = done - keep
-        return index[tg], score
+        return index[targets], score
