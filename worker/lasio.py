@@ -21,6 +21,7 @@ import contextlib
 import copy
 import os
 import struct
+import sys
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
@@ -369,12 +370,25 @@ def local_origin(header: laspy.LasHeader) -> np.ndarray:
     return offsets + grid * scales
 
 
-def _grid_origin(header: laspy.LasHeader) -> tuple[np.ndarray, np.ndarray]:
+def grid_origin(header: laspy.LasHeader) -> tuple[np.ndarray, np.ndarray]:
     """The integer grid index and world position of the local origin."""
     scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
     origin = local_origin(header)
     grid = np.round((origin - offsets) / scales).astype(np.int64)
     return grid, origin
+
+
+def local_xyz(
+    chunk: laspy.ScaleAwarePointRecord, grid: np.ndarray, scales: np.ndarray,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
+    """(c, 3) float64 coordinates of a chunk relative to the grid point ``grid`` (integers)."""
+    if out is None:
+        out = np.empty((len(chunk), 3), dtype=np.float64)
+    for axis, dim in enumerate("XYZ"):
+        ints = np.asarray(chunk.array[dim], dtype=np.int64) - grid[axis]
+        out[:, axis] = ints * scales[axis]
+    return out
 
 
 def read_cloud(
@@ -394,7 +408,7 @@ def read_cloud(
         header = reader.header
     n = int(header.point_count)
     dims = set(header.point_format.dimension_names)
-    grid, origin = _grid_origin(header)
+    grid, origin = grid_origin(header)
     scales = np.asarray(header.scales)
     xyz = np.empty((n, 3), dtype=np.float64)
     gps = np.empty(n, dtype=np.float64) if "gps_time" in dims else None
@@ -406,9 +420,7 @@ def read_cloud(
     lo, hi = progress_span
     for chunk in iter_chunks(path, chunk_points):
         stop = start + len(chunk)
-        for axis, dim in enumerate("XYZ"):
-            ints = np.asarray(chunk.array[dim], dtype=np.int64) - grid[axis]
-            xyz[start:stop, axis] = ints * scales[axis]
+        local_xyz(chunk, grid, scales, out=xyz[start:stop])
         if gps is not None:
             gps[start:stop] = chunk.array["gps_time"]
         psid[start:stop] = chunk.array["point_source_id"]
@@ -507,6 +519,71 @@ def _atomic_output(out_path: Path) -> Iterator[Path]:
 Fill = Callable[[int, laspy.ScaleAwarePointRecord, laspy.ScaleAwarePointRecord], None]
 
 
+class ResultWriter:
+    """Write a result file from the input's chunks: original bytes plus ``new_dims``.
+
+    Use as a context manager; the file appears under ``out_path`` only if the block completes
+    (temporary name in the same folder, renamed at the end), EVLRs are written after the points.
+
+    >>> with ResultWriter(src, dst, result_dimensions(["temporal"])) as w:  # doctest: +SKIP
+    ...     for chunk in iter_chunks(src):
+    ...         out = w.record(chunk)
+    ...         out["outlier_flags"] = 0
+    ...         w.write(out)
+    """
+
+    def __init__(
+        self,
+        in_path: str | os.PathLike[str],
+        out_path: str | os.PathLike[str],
+        new_dims: list[tuple[str, type, str]],
+        *,
+        laz: bool | None = None,
+    ) -> None:
+        self.in_path, self.out_path = Path(in_path), Path(out_path)
+        name = self.in_path.name
+        with _laspy_errors(name), laspy.open(self.in_path) as reader:
+            in_header = reader.header
+        self.points = int(in_header.point_count)
+        self.compress = _is_compressed(in_header) if laz is None else laz
+        self.header = _output_header(in_header, new_dims)
+        check_laz_output(name, self.header.point_format.id, self.compress)
+        self._atomic: contextlib.AbstractContextManager[Path] | None = None
+        self._writer: laspy.LasWriter | None = None
+
+    def __enter__(self) -> ResultWriter:
+        self._atomic = _atomic_output(self.out_path)
+        tmp = self._atomic.__enter__()
+        try:
+            self._writer = laspy.open(tmp, mode="w", header=self.header,
+                                      do_compress=self.compress)
+        except BaseException:
+            self._atomic.__exit__(*sys.exc_info())
+            raise
+        return self
+
+    def record(self, chunk: laspy.ScaleAwarePointRecord) -> laspy.ScaleAwarePointRecord:
+        """An output record for ``chunk``: every original byte copied, new dimensions zero."""
+        out = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=self.header)
+        _copy_record_bytes(chunk.array, out.array)
+        return out
+
+    def write(self, record: laspy.ScaleAwarePointRecord) -> None:
+        assert self._writer is not None, "use ResultWriter as a context manager"
+        self._writer.write_points(record)
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        assert self._writer is not None and self._atomic is not None
+        try:
+            if exc_type is None:
+                _write_evlrs(self._writer, self.header)
+            self._writer.close()
+        except BaseException:
+            self._atomic.__exit__(*sys.exc_info())
+            raise
+        self._atomic.__exit__(exc_type, exc, tb)
+
+
 def rewrite(
     in_path: str | os.PathLike[str],
     out_path: str | os.PathLike[str],
@@ -524,28 +601,18 @@ def rewrite(
     the input record and the output record (original dimensions already copied) and sets the new
     dimensions (and, if it wants, the classification). ``laz=None`` keeps the input's compression.
     """
-    in_path, out_path = Path(in_path), Path(out_path)
-    name = in_path.name
-    with _laspy_errors(name), laspy.open(in_path) as reader:
-        in_header = reader.header
-    n = int(in_header.point_count)
-    compress = _is_compressed(in_header) if laz is None else laz
-    header = _output_header(in_header, new_dims)
-    check_laz_output(name, header.point_format.id, compress)
     lo, hi = progress_span
-    with _atomic_output(out_path) as tmp:
-        with laspy.open(tmp, mode="w", header=header, do_compress=compress) as writer:
-            start = 0
-            for chunk in iter_chunks(in_path, chunk_points):
-                out = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=header)
-                _copy_record_bytes(chunk.array, out.array)
-                fill(start, chunk, out)
-                writer.write_points(out)
-                start += len(chunk)
-                if progress is not None:
-                    message = f"writing {start:,} of {n:,} points"
-                    progress(lo + (hi - lo) * start / max(n, 1), message)
-            _write_evlrs(writer, header)
+    with ResultWriter(in_path, out_path, new_dims, laz=laz) as writer:
+        n = writer.points
+        start = 0
+        for chunk in iter_chunks(in_path, chunk_points):
+            out = writer.record(chunk)
+            fill(start, chunk, out)
+            writer.write(out)
+            start += len(chunk)
+            if progress is not None:
+                message = f"writing {start:,} of {n:,} points"
+                progress(lo + (hi - lo) * start / max(n, 1), message)
 
 
 #: Point formats whose waveform fields lazrs does not round-trip (checked with laspy 2.7/lazrs).

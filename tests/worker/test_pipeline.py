@@ -180,26 +180,32 @@ def test_far_coordinates_and_late_gps_time_give_the_same_flags(tmp_path, spiky):
 def test_progress_is_reported_and_its_exception_propagates(tmp_path, spiky):
     xyz, t, _ = spiky
     src = write_las(tmp_path / "in.las", xyz, gps_time=t)
-    seen: list[tuple[float, str]] = []
-    process_file(src, tmp_path / "ok.las", {"pipeline": [{"detector": "temporal"}]},
-                 progress=lambda f, m: seen.append((f, m)), chunk_points=500)
-    fractions = [f for f, _ in seen]
-    assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
-    messages = " ".join(m for _, m in seen)
-    assert "reading" in messages and "temporal" in messages and "writing" in messages
+    two_stages = {"pipeline": [{"detector": "temporal"}, {"detector": "section"}]}
+    streaming = {"pipeline": [{"detector": "temporal"}]}
+    for params, words in ((two_stages, ("reading", "temporal", "section", "writing")),
+                          (streaming, ("temporal (streaming)",))):
+        seen: list[tuple[float, str]] = []
+        process_file(src, tmp_path / "ok.las", params,
+                     progress=lambda f, m, seen=seen: seen.append((f, m)), chunk_points=500)
+        fractions = [f for f, _ in seen]
+        assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
+        assert len(seen) >= 6
+        messages = " ".join(m for _, m in seen)
+        assert all(word in messages for word in words), messages
 
     class Cancelled(Exception):
         pass
 
-    for stop_at in ("temporal", "writing"):
+    for params, stop_at in ((two_stages, "section"), (two_stages, "writing"),
+                            (streaming, "streaming")):
         def progress(fraction: float, message: str, stop_at=stop_at) -> None:
-            if stop_at in message:
+            if stop_at in message and fraction > 0.4:
                 raise Cancelled(stop_at)
 
         out_dir = tmp_path / stop_at
         with pytest.raises(Cancelled):
-            process_file(src, out_dir / "out.las", {"pipeline": [{"detector": "temporal"}]},
-                         progress=progress, stats_path=out_dir / "s.json", chunk_points=500)
+            process_file(src, out_dir / "out.las", params, progress=progress,
+                         stats_path=out_dir / "s.json", chunk_points=500)
         assert not out_dir.exists() or list(out_dir.iterdir()) == []
 
 
@@ -228,3 +234,39 @@ def test_parameter_errors_name_the_field(tmp_path, spiky):
     with pytest.raises(ParameterError, match="noise_class 40 does not fit point format 1"):
         process_file(src, tmp_path / "out.las", {"noise_class": 40})
     assert not (tmp_path / "out.las").exists()
+
+
+def _two_scanner_file(tmp_path, rng, name, shuffle=False):
+    xyz, t, spiked = scan_line_cloud(6000, rng, spikes=40, spike_size=0.5)
+    psid = np.where(np.arange(6000) % 3 == 0, 1, 2).astype(np.uint16)  # interleaved scanners
+    cls = np.where(spiked, 7, 1).astype(np.uint8)
+    order = rng.permutation(6000) if shuffle else np.arange(6000)
+    return write_las(tmp_path / name, xyz[order], gps_time=t[order], point_source_id=psid[order],
+                     classification=cls[order], point_format=6)
+
+
+def test_temporal_only_pipeline_streams_and_matches_the_in_memory_run(tmp_path, rng):
+    src = _two_scanner_file(tmp_path, rng, "ordered.las")
+    params = PipelineParams.model_validate(
+        {"pipeline": [{"detector": "temporal", "sigma": 0.003, "max_gap": 0.01}],
+         "reference_classes": [7], "noise_class": 18}
+    )
+    stats = process_file(src, tmp_path / "out.las", params, chunk_points=700)
+    assert stats["mode"] == "streaming"
+    out = laspy.read(tmp_path / "out.las")
+    memory = run_pipeline(lasio.read_cloud(src), params)
+    np.testing.assert_array_equal(out.outlier_flags, memory.flags)
+    np.testing.assert_array_equal(out.temporal_score, memory.scores["temporal"])
+    np.testing.assert_array_equal(out.classification, memory.classification)
+    assert stats["overall"] == memory.statistics["overall"]
+    assert stats["stages"][0]["points_tested"] == memory.statistics["stages"][0]["points_tested"]
+    assert stats["stages"][0]["confusion"]["outliers_identified"] >= 35
+
+
+def test_unordered_file_falls_back_to_memory(tmp_path, rng):
+    src = _two_scanner_file(tmp_path, rng, "shuffled.las", shuffle=True)
+    stats = process_file(src, tmp_path / "out.las",
+                         {"pipeline": [{"detector": "temporal", "sigma": 0.003}]}, chunk_points=700)
+    assert stats["mode"] == "in memory" and "not in time order" in stats["streaming"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.las", "shuffled.las"]
+    assert np.asarray(laspy.read(tmp_path / "out.las").outlier_flags).sum() > 0
