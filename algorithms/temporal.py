@@ -613,6 +613,15 @@ def detect_temporal(
     DetectorResult with score (n,) = max over X, Y, Z of |eq. 17| (NaN where untested: segments
     of fewer than 4 points, windows with fewer than three distinct times), flagged (n,) =
     score > normal_critical_value(alpha), and info with every resolved parameter.
+
+    Examples
+    --------
+    >>> t = 5e5 + np.arange(60) * 1e-5
+    >>> xyz = np.c_[5e6 + 300.0 * (t - 5e5), np.full(60, 3e5), np.full(60, 100.0)]
+    >>> xyz[30, 2] += 0.1  # a 10-sigma spike: 10 / sqrt(eq. 16 / sigma^2) = 8.9
+    >>> res = detect_temporal(xyz, t, sigma=0.01)
+    >>> np.flatnonzero(res.flagged).tolist(), round(float(res.score[30]), 2)
+    ([30], 8.9)
     """
     p = _check_params(n1, n2, sigma, alpha, max_gap)
     xyz, t, group = _check_arrays(xyz, gps_time, group)
