@@ -66,7 +66,8 @@ class QuadricFit:
     centroid : (m, 3) float64
         The frame origin of each surface (mean of its points).
     residuals : (m, k) float64
-        v_i of eq. 29 (the equivalent single measurement residual, units of F).
+        v_i of eq. 29 (the equivalent single measurement residual, units of F), signed for the
+        reported params.
     t_stat : (m, k) float64
         T_i of eq. 31.
     sigma0 : (m,) float64
@@ -441,7 +442,10 @@ def _fit_one(
         for q in range(N_PARAMS):
             bqb += mono[i, _N_INDEX[q, 9]] * cols[q, i]
         t_out[i] = t_statistic(v_out[i], sigma0, 1.0 / p_w[i] - bqb)  # q_vv = 1/p_i - B Q_aa B^T
-    _canonical_sign(a)
+    if _canonical_sign(a):
+        for i in range(n):
+            if active[i]:
+                v_out[i] = -v_out[i]  # v_i = F(a, x_i) changes sign with a
     return sigma0, iterations, converged
 
 
@@ -463,8 +467,8 @@ def _squarem(a0: np.ndarray, r: np.ndarray, da1: np.ndarray, a: np.ndarray) -> N
 
 
 @njit(cache=True, inline="always")
-def _canonical_sign(a: np.ndarray) -> None:
-    """Scale a by -1 if needed so that its largest-magnitude entry is positive."""
+def _canonical_sign(a: np.ndarray) -> bool:
+    """Scale a by -1 if needed so that its largest-magnitude entry is positive; True if it was."""
     big = 0
     for q in range(1, N_PARAMS):
         if abs(a[q]) > abs(a[big]):
@@ -472,6 +476,8 @@ def _canonical_sign(a: np.ndarray) -> None:
     if a[big] < 0.0:
         for q in range(N_PARAMS):
             a[q] = -a[q]
+        return True
+    return False
 
 
 @njit(cache=True)
