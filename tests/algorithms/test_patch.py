@@ -1,0 +1,124 @@
+"""The `patch` detector (algorithm (b)): per-point quadric patches of the k nearest neighbours."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from algorithms.patch import detect_patch
+from algorithms.stats import t_critical_value
+from tests.algorithms.test_quadric import slow_fit
+from worker.errors import ParameterError
+
+
+def gentle_surface(rng, n=3000, size=2.0, noise=0.005):
+    """A smooth, gently curved surface sampled at random, 5 mm noise: (n, 3)."""
+    xy = rng.uniform(0.0, size, (n, 2))
+    z = 0.05 * np.sin(xy[:, 0]) + 0.03 * xy[:, 1] ** 2 + rng.normal(0.0, noise, n)
+    return np.c_[xy, z]
+
+
+def test_slow_reference_per_point():
+    # Brute-force neighbours and the slow fit for a sample of points; the detector iterates
+    # with acceleration to ||da|| < 1e-8, the reference plainly to 1e-12.
+    rng = np.random.default_rng(1)
+    xyz = gentle_surface(rng, n=600, size=1.0)
+    res = detect_patch(xyz, k=40, sigma=0.005, alpha=0.001)
+    agree = 0
+    sample = rng.choice(len(xyz), 40, replace=False)
+    for i in sample:
+        d = np.linalg.norm(xyz - xyz[i], axis=1)
+        nbr = np.argsort(d, kind="stable")[:40]
+        assert nbr[0] == i
+        _, _, T, _, _, ok = slow_fit(xyz[nbr], 0.005, max_iter=2000, tol=1e-12)
+        if ok and not np.isnan(res.score[i]):
+            agree += abs(res.score[i] - T[0]) < 1e-4
+    assert agree >= 36
+
+
+def test_ten_sigma_spike_is_flagged():
+    rng = np.random.default_rng(2)
+    xyz = gentle_surface(rng)
+    spike = 1234
+    xyz[spike, 2] += 10 * 0.005
+    res = detect_patch(xyz, k=40, sigma=0.005, alpha=0.001)
+    assert res.flagged[spike]
+    assert res.score[spike] > res.critical_value
+    assert res.critical_value == pytest.approx(t_critical_value(0.001, 31))
+    # The clean surface: few false alarms and almost every point tested.
+    assert res.flagged.sum() <= 1 + 0.005 * len(xyz)
+    assert res.info["points_tested"] >= 0.98 * len(xyz)
+    assert res.info["points_tested"] == int(res.tested.sum())
+
+
+def test_shift_by_5e6_changes_nothing():
+    rng = np.random.default_rng(3)
+    # Coordinates on a 1/1024 m grid: the shifted values are exact, so is the subtraction of
+    # the cloud's minimum corner, and the results must be identical.
+    xyz = np.round(gentle_surface(rng, n=1500) * 1024) / 1024
+    xyz[100, 2] += 64 / 1024  # on the grid too
+    a = detect_patch(xyz)
+    b = detect_patch(xyz + np.array([5e6, 5e6, 300.0]))
+    np.testing.assert_array_equal(a.flagged, b.flagged)
+    np.testing.assert_array_equal(a.score, b.score)
+    assert a.flagged[100]
+
+
+def test_shift_without_exact_grid_changes_nothing_measurable():
+    rng = np.random.default_rng(4)
+    xyz = gentle_surface(rng, n=1500)
+    a = detect_patch(xyz)
+    b = detect_patch(xyz + np.array([4.9e6, 5.1e6, 123.456]))
+    both = a.tested & b.tested
+    assert both.mean() > 0.98
+    np.testing.assert_allclose(b.score[both], a.score[both], atol=1e-4)
+    assert (a.flagged != b.flagged).sum() <= 1
+
+
+def test_tiny_tiles_equal_one_tile():
+    rng = np.random.default_rng(5)
+    xyz = gentle_surface(rng, n=2000)
+    xyz[::97, 2] += 0.05
+    one = detect_patch(xyz, batch_points=10**9)
+    tiny = detect_patch(xyz, batch_points=37, tile_size=0.05)
+    np.testing.assert_array_equal(one.score, tiny.score)
+    np.testing.assert_array_equal(one.flagged, tiny.flagged)
+
+
+def test_k_too_small_for_alpha_is_refused():
+    xyz = gentle_surface(np.random.default_rng(6), n=200)
+    with pytest.raises(ParameterError, match=r"k=20 .*alpha=0.001.*k >= 26"):
+        detect_patch(xyz, k=20, alpha=0.001)
+    with pytest.raises(ParameterError, match="k=10"):
+        detect_patch(xyz, k=10, alpha=0.01)
+    # The same k is fine with a larger alpha: sqrt(11) > t(11) at 0.05.
+    res = detect_patch(xyz, k=20, alpha=0.05)
+    assert res.info["k"] == 20
+
+
+def test_bad_input_is_refused_with_one_line():
+    with pytest.raises(ParameterError, match="shape"):
+        detect_patch(np.zeros((10, 2)))
+    bad = gentle_surface(np.random.default_rng(7), n=100)
+    bad[3, 1] = np.nan
+    with pytest.raises(ParameterError, match="NaN"):
+        detect_patch(bad)
+    with pytest.raises(ParameterError, match="sigma"):
+        detect_patch(gentle_surface(np.random.default_rng(7), n=100), sigma=-1.0)
+
+
+def test_fewer_points_than_k_tests_nothing():
+    xyz = gentle_surface(np.random.default_rng(8), n=30)
+    res = detect_patch(xyz, k=40)
+    assert np.isnan(res.score).all()
+    assert not res.flagged.any()
+    assert res.info["points_tested"] == 0
+
+
+def test_per_axis_sigma_is_accepted():
+    rng = np.random.default_rng(9)
+    xyz = gentle_surface(rng, n=800)
+    xyz[50, 2] += 0.08
+    res = detect_patch(xyz, sigma=(0.01, 0.01, 0.005))
+    assert res.info["sigma"] == [0.01, 0.01, 0.005]
+    assert res.flagged[50]
