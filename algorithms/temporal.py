@@ -703,6 +703,18 @@ class _Tail:
     max_gap: float | None = None  # seconds; None while 'auto' is unresolved
 
 
+def _split_by_group(rows: np.ndarray, group: np.ndarray | None) -> dict[int, np.ndarray]:
+    """rows (r,) split by their group id, each part keeping the input order (stable sort)."""
+    if group is None:
+        return {0: rows} if rows.size else {}
+    g = group[rows]
+    order = np.argsort(g, kind="stable")
+    g, rows = g[order], rows[order]
+    cuts = np.flatnonzero(g[1:] != g[:-1]) + 1
+    parts = np.split(rows, cuts)
+    return {int(g[a]): part for a, part in zip(np.r_[0, cuts], parts, strict=True) if part.size}
+
+
 class TemporalStream:
     """The ``temporal`` detector over a stream of chunks, with memory bounded per group.
 
@@ -845,10 +857,9 @@ class TemporalStream:
         if not valid.all():
             out_index.append(index[~valid].astype(np.int64))
             out_score.append(np.full(int(np.count_nonzero(~valid)), np.nan))
-        gids = np.zeros(t.size, np.int64) if group is None else group.astype(np.int64)
-        present = np.unique(gids[valid]).tolist()
-        for gid in sorted(set(present) | (set(self._tails) if final else set())):
-            rows = np.flatnonzero(valid & (gids == gid))
+        rows_by_group = _split_by_group(np.flatnonzero(valid), group)
+        for gid in sorted(set(rows_by_group) | (set(self._tails) if final else set())):
+            rows = rows_by_group.get(gid, np.zeros(0, dtype=np.int64))
             tail = self._tail(gid)
             idx, score = self._advance(gid, tail, t[rows], xyz[rows], index[rows], final)
             out_index.append(idx)
