@@ -411,6 +411,11 @@ class Store:
                 )
         return status
 
+    def annotate(self, job_id: str, message: str) -> None:
+        """Replace a job's message without changing its state (e.g. how a cancel ended)."""
+        with self._transaction() as db:
+            db.execute("UPDATE jobs SET message = ? WHERE id = ?", (message, job_id))
+
     def status(self, job_id: str) -> JobStatus | None:
         with self._connect() as db:
             row = db.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()

@@ -107,6 +107,8 @@ def execute_job(settings: Settings, store: Store, job_id: str) -> JobStatus | No
         _write_json(statistics_path(settings, job_id), stats)
     except CancelledError:
         shutil.rmtree(folder, ignore_errors=True)
+        if store.status(job_id) is JobStatus.dismissed:
+            store.annotate(job_id, "dismissed by the user; the worker stopped the running job")
         return JobStatus.dismissed
     except LidarOutliersError as exc:
         return _fail(store, job_id, folder, str(exc))

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
 from service.deps import ServiceDep, UserDep
@@ -76,10 +77,10 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
                   user: UserDep) -> JSONResponse:
     """Queue a job: answers 201, ``Location: /jobs/{id}`` and the status document."""
     inputs_model(process_id)  # 404 before reading a large body
-    service.check_active_limit(user)  # 429 likewise
+    await run_in_threadpool(service.check_active_limit, user)  # 429 likewise
     content_type = request.headers.get("content-type", "")
     if content_type.startswith("multipart/form-data"):
-        limit, quota = service.upload_limit(user)
+        limit, quota = await run_in_threadpool(service.upload_limit, user)
         received = await receive_multipart(request.stream(), content_type,
                                            service.incoming_dir, limit, quota)
         assert received.path is not None
@@ -92,8 +93,8 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         except BaseException:
             received.path.unlink(missing_ok=True)
             raise
-        job = service.submit(user, process_id, params, received.path, received.filename,
-                             move=True)
+        job = await run_in_threadpool(service.submit, user, process_id, params, received.path,
+                                      received.filename, move=True)
     elif content_type.startswith("application/json"):
         body = await request.body()
         if len(body) > MAX_JSON_BYTES:
@@ -108,9 +109,9 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
             raise Problem(422, "invalid-parameter", 'cloud: missing; give "cloud": {"href": '
                           '"/uploads/<id>"} (POST /uploads first) or send multipart/form-data',
                           errors=[{"parameter": "cloud", "message": "missing href"}])
-        upload = service.find_upload(user, href)
-        job = service.submit(user, process_id, params, Path(upload.path), upload.name,
-                             move=False)
+        upload = await run_in_threadpool(service.find_upload, user, href)
+        job = await run_in_threadpool(service.submit, user, process_id, params,
+                                      Path(upload.path), upload.name, move=False)
     else:
         raise Problem(415, "unsupported-media-type",
                       "send multipart/form-data (part `file` and optional part `inputs`) or "

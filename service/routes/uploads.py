@@ -6,6 +6,7 @@ import os
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
 from service.deps import ServiceDep, UserDep
@@ -30,11 +31,12 @@ async def upload(
     name: Annotated[str, Query(max_length=255, description="File name to remember.")] = "cloud",
 ) -> JSONResponse:
     """Store a LAS/LAZ file sent as the raw body (``curl --data-binary @cloud.las``)."""
-    limit, quota = service.upload_limit(user)
+    limit, quota = await run_in_threadpool(service.upload_limit, user)
     received = await receive_raw(request.stream(), service.incoming_dir, limit, quota,
                                  os.path.basename(name) or "cloud")
     assert received.path is not None
-    stored = service.store_upload(user, received.path, received.filename)
+    stored = await run_in_threadpool(service.store_upload, user, received.path,
+                                     received.filename)
     href = f"/uploads/{stored.id}"
     return JSONResponse(
         {"id": stored.id, "href": href, "name": stored.name, "bytes": stored.bytes,

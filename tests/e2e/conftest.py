@@ -18,3 +18,25 @@ def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServ
     server = RedisServer(tmp_path_factory.mktemp("redis"))
     yield server
     server.stop()
+
+
+WARM_UP = """
+import sys, tempfile, pathlib
+from tests.e2e.clouds import write_cloud
+from worker.pipeline import process_file
+folder = pathlib.Path(tempfile.mkdtemp())
+write_cloud(folder / "in.las", n=3000)
+for stage in ("temporal", "patch", "section"):
+    process_file(folder / "in.las", folder / "out.las", {"pipeline": [{"detector": stage}]})
+"""
+
+
+@pytest.fixture(scope="session")
+def compiled_detectors() -> None:
+    """Compile the numba kernels once (cached on disk) before workers with time limits start."""
+    import subprocess
+    import sys
+
+    from tests.e2e.stack import ROOT
+
+    subprocess.run([sys.executable, "-c", WARM_UP], cwd=ROOT, check=True, timeout=900)

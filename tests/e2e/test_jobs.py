@@ -15,7 +15,8 @@ from tests.e2e.stack import RedisServer, Stack, wait_job
 
 
 @pytest.fixture(scope="module")
-def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
+          compiled_detectors: None) -> Iterator[Stack]:
     s = Stack(tmp_path_factory.mktemp("data"), redis_server.new_url(),
               max_active_jobs_per_user=8)
     try:
