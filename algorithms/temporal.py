@@ -144,9 +144,12 @@ def difference_variance(a: np.ndarray, variance: np.ndarray, w: int, centre: int
 
 
 @njit(cache=True)
-def standardised_difference(z_k: float, z_p: float, variance_dz: float) -> float:
-    """Eq. 17: (z(k) - z_p(k)) / sigma_dz(k), standard normal under H0."""
-    return (z_k - z_p) / math.sqrt(variance_dz)
+def standardised_difference(dz: float, sigma_dz: float) -> float:
+    """Eq. 17: dz / sigma_dz with dz = z(k) - z_p(k) and sigma_dz = sqrt(eq. 16).
+
+    Standard normal under H0: dz = 0.
+    """
+    return dz / sigma_dz
 
 
 @njit(cache=True)
@@ -577,7 +580,8 @@ def scores_from_differences(
         if not np.isnan(sigma_dz_unit[k]):
             best = 0.0
             for j in range(dz_unit.shape[1]):
-                best = max(best, abs(dz_unit[k, j]) / (sigma[j] * sigma_dz_unit[k]))
+                z = standardised_difference(dz_unit[k, j], sigma[j] * sigma_dz_unit[k])
+                best = max(best, abs(z))
             score[k] = best
     return score
 
