@@ -334,13 +334,15 @@ def process_file(
     progress: Progress | None = None,
     stats_path: str | os.PathLike[str] | None = None,
     chunk_points: int = lasio.DEFAULT_CHUNK_POINTS,
+    streaming: bool = True,
 ) -> dict[str, Any]:
     """Validate, read, run the pipeline, write the flagged cloud; return the statistics.
 
     ``laz=None`` writes LAZ when the input is LAZ. ``progress(fraction, message)`` is called while
     reading, per stage and while writing; whatever it raises propagates unchanged (the service
     cancels jobs that way) and no output file is left behind. ``stats_path`` also receives the
-    statistics as JSON (written atomically).
+    statistics as JSON (written atomically). A temporal-only pipeline on a file in time order
+    per scanner runs in one streaming pass (``streaming=False`` forces the in-memory path).
     """
     t0 = time.perf_counter()
     if params is None:
@@ -358,7 +360,7 @@ def process_file(
     if laz is None and facts.point_format in lasio.LAZ_LOSSY_FORMATS:
         compress = False  # lazrs would change the waveform fields; keep the data, write LAS
     streaming_note = None
-    if _temporal_only(params) and facts.has_gps_time and facts.points > 0:
+    if streaming and _temporal_only(params) and facts.has_gps_time and facts.points > 0:
         stats, streaming_note = _stream_temporal(
             in_path, out_path, params, facts, compress, progress, chunk_points
         )
@@ -510,9 +512,12 @@ def _in_time_order(t: np.ndarray, group: np.ndarray | None, last: dict[int, floa
     tt = t[finite]
     if tt.size == 0:
         return True
-    g = np.zeros(tt.size, np.int64) if group is None else group[finite].astype(np.int64)
-    order = np.argsort(g, kind="stable")
-    gs, ts = g[order], tt[order]
+    if group is None:
+        gs, ts = np.zeros(tt.size, np.uint8), tt
+    else:
+        g = group[finite]  # uint16 point_source_id: numpy's stable sort is a radix sort here
+        order = np.argsort(g, kind="stable")
+        gs, ts = g[order], tt[order]
     same = gs[1:] == gs[:-1]
     if np.any(ts[1:][same] < ts[:-1][same]):
         return False

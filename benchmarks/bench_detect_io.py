@@ -1,0 +1,131 @@
+"""Whole-command speed of ``lidar-outliers detect --detector temporal`` against plain laspy I/O.
+
+Target (issue 2): the whole command within 3x of just reading and writing the file with laspy,
+on a 1.1 million point mobile cloud. The cloud is synthetic: two profile scanners interleaved in
+time order, coordinates near 5e6 m, GPS times near 5e5 s, LAS 1.4 point format 6.
+
+Measured, each ``--repeat`` times (best wall time kept; CPU time beside it because the machine is
+shared):
+
+- ``laspy``: ``laspy.read(IN)`` then ``.write(OUT)`` in this process (the baseline);
+- ``detect (streaming)`` / ``detect (in memory)``: ``worker.pipeline.process_file`` in this
+  process (temporal only; the streaming path is the default for time-ordered files);
+- ``lidar-outliers detect``: the installed command in a subprocess (adds interpreter start-up
+  and imports), with its peak RSS.
+
+    .venv/bin/python benchmarks/bench_detect_io.py [--points 1100000] [--laz] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import laspy
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from worker.pipeline import process_file  # noqa: E402
+
+
+def make_cloud(path: Path, n: int, seed: int = 0) -> None:
+    rng = np.random.default_rng(seed)
+    t = 5e5 + np.cumsum(rng.uniform(0.5e-5, 1.5e-5, n))
+    scanner = np.where(np.arange(n) % 2 == 0, 1, 2).astype(np.uint16)
+    phase = (t - t[0]) * 200.0 + scanner
+    xyz = np.column_stack([
+        5_000_000.0 + 10 * (t - t[0]) + 8 * np.cos(phase),
+        4_000_000.0 + 8 * np.sin(phase),
+        100.0 + 0.3 * np.sin(3 * phase),
+    ]) + rng.normal(0, 0.004, (n, 3))
+    spikes = rng.choice(n, n // 200, replace=False)
+    xyz[spikes, 2] += rng.uniform(0.2, 2.0, spikes.size)
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.offsets = [5_000_000.0, 4_000_000.0, 0.0]
+    header.scales = [0.001, 0.001, 0.001]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    las.gps_time = t
+    las.point_source_id = scanner
+    las.intensity = rng.integers(0, 4000, n).astype(np.uint16)
+    las.write(str(path))
+
+
+def timed(fn) -> tuple[float, float]:
+    c0, w0 = time.process_time(), time.perf_counter()
+    fn()
+    return time.perf_counter() - w0, time.process_time() - c0
+
+
+def best(fn, repeat: int) -> tuple[float, float]:
+    runs = [timed(fn) for _ in range(repeat)]
+    return min(runs)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=1_100_000)
+    ap.add_argument("--laz", action="store_true", help="LAZ in and out instead of LAS")
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args()
+    suffix = "laz" if args.laz else "las"
+    with tempfile.TemporaryDirectory(prefix="bench_detect_io_") as tmp:
+        tmp = Path(tmp)
+        src = tmp / f"cloud.{suffix}"
+        make_cloud(src, args.points)
+        n = args.points
+        params = {"pipeline": [{"detector": "temporal"}]}
+        # Warm-up: numba kernels load from cache / compile once.
+        process_file(src, tmp / f"warm.{suffix}", params)
+
+        def laspy_io() -> None:
+            laspy.read(str(src)).write(str(tmp / f"laspy_out.{suffix}"))
+
+        def streaming() -> None:
+            stats = process_file(src, tmp / f"s.{suffix}", params)
+            assert stats["mode"] == "streaming", stats.get("streaming")
+
+        def in_memory() -> None:
+            stats = process_file(src, tmp / f"m.{suffix}", params, streaming=False)
+            assert stats["mode"] == "in memory"
+
+        script = Path(sys.executable).with_name("lidar-outliers")
+        command = [str(script)] if script.exists() else [sys.executable, "-m",
+                                                         "lidar_outliers.cli"]
+
+        def cli() -> None:
+            subprocess.run([*command, "detect", str(src), "-o", str(tmp / f"c.{suffix}"), "-q",
+                            "--detector", "temporal", "--stats", str(tmp / "c.json")],
+                           check=True, cwd=ROOT)
+
+        base = best(laspy_io, args.repeat)
+        rows = [("laspy read + write", base)]
+        rows.append(("detect (streaming)", best(streaming, args.repeat)))
+        rows.append(("detect (in memory)", best(in_memory, args.repeat)))
+        c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        w0 = time.perf_counter()
+        cli()
+        w = time.perf_counter() - w0
+        c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cli_cpu = (c1.ru_utime + c1.ru_stime) - (c0.ru_utime + c0.ru_stime)
+        rows.append(("lidar-outliers detect (subprocess)", (w, cli_cpu)))
+        print(f"{n:,} points, {suffix.upper()} {src.stat().st_size / 1e6:.1f} MB, "
+              f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+        print(f"{'':36} {'wall s':>8} {'cpu s':>8} {'Mpts/s':>8} {'x laspy (wall/cpu)':>20}")
+        for label, (wall, cpu) in rows:
+            print(f"{label:36} {wall:8.2f} {cpu:8.2f} {n / wall / 1e6:8.2f} "
+                  f"{wall / base[0]:9.2f} / {cpu / base[1]:.2f}")
+        print(f"peak RSS of the subprocess: {c1.ru_maxrss / 1024:.0f} MB; "
+              f"this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
