@@ -565,3 +565,20 @@ def test_real_airborne_gross_outliers_are_found():
     )
     assert loose.flagged[truth["gross"]].mean() > 0.9  # 0.910 measured
     assert loose.flagged[~truth["is_outlier"]].mean() < 0.06  # 0.053 measured
+
+
+def test_stream_group_first_seen_after_warmup_resolves_its_own_max_gap():
+    xyz, t, _ = _stream_data(3000, seed=23)
+    group = np.where(np.arange(3000) < 1500, 0, 1 + np.arange(3000) % 2)  # 1, 2 appear late
+    stream = TemporalStream(sigma=0.01, warmup_points=1000)
+    score = _run_stream(stream, xyz, t, group, 500)
+    gaps = stream.info["max_gap_by_group"]
+    assert set(gaps) == {"0", "1", "2"}
+    for g in (1, 2):
+        rows = np.flatnonzero(group == g)
+        first_chunk = rows[rows < 2000]  # the group's rows in the first chunk that holds it
+        times = t[first_chunk][np.isfinite(t[first_chunk])]
+        steps = np.diff(times)
+        assert gaps[str(g)] == pytest.approx(5 * np.median(steps[steps > 0]), rel=1e-12)
+        batch = detect_temporal(xyz[rows], t[rows], sigma=0.01, max_gap=gaps[str(g)])
+        np.testing.assert_array_equal(score[rows], batch.score)
