@@ -52,6 +52,22 @@ def _folder(value: str | None, name: str, quick: bool) -> Path | None:
     return path
 
 
+def command_line(args: argparse.Namespace) -> str:
+    """The command as given (rebuilt from the parsed options, so it is exact under any caller)."""
+    parts = ["lidar-outliers", "bench"]
+    if args.quick:
+        parts.append("--quick")
+    for opt in ("seeds", "scale", "isprs", "wads", "airborne", "markdown", "json"):
+        value = getattr(args, opt)
+        if value is not None:
+            parts += [f"--{opt}", str(value)]
+    if args.cache != Path(".bench"):
+        parts += ["--cache", str(args.cache)]
+    if args.no_speed:
+        parts.append("--no-speed")
+    return shlex.join(parts)
+
+
 def run(args: argparse.Namespace) -> int:
     import json
 
@@ -70,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         airborne=_folder(args.airborne, "airborne", args.quick),
         cache=args.cache,
         speed=not args.no_speed,
-        command="lidar-outliers " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "",
+        command=command_line(args),
     )
 
     def say(message: str) -> None:
