@@ -46,6 +46,10 @@ class TemporalParams(_Stage):
     def _positive_numbers(self) -> TemporalParams:
         _require_positive(self.sigma, "sigma")
         _require_positive(self.max_gap, "max_gap")
+        if self.n1 + self.n2 < 3:
+            # A quadratic in time (eqs. 1-3) needs three neighbours besides the tested point,
+            # otherwise the point carries the whole fit and eq. 15 divides by zero.
+            raise ValueError(f"n1 + n2 must be at least 3, got {self.n1} + {self.n2}")
         return self
 
 
