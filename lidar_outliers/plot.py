@@ -217,7 +217,7 @@ def render(
     top.legend(loc="upper right", markerscale=4, fontsize=8)
     side.set_title("side profile along the main axis")
     side.set_xlabel("along (m)")
-    side.set_ylabel(f"z - {origin[2]:.2f} (m)")
+    side.set_ylabel(f"z - ({origin[2]:.2f}) (m)")
 
     crits = critical_values(list(res.scores), stats)
     if not res.scores:

@@ -421,12 +421,14 @@ def build_objects(scene: Scene, rng: np.random.Generator) -> Objects:
     cars_arr = np.array(cars, dtype=float).reshape(-1, 6)
     poles = np.column_stack([np.arange(3.0, L, 9.0), np.full(len(np.arange(3.0, L, 9.0)), -5.9)])
     n_pud = max(1, round(2 * L / 20))
-    puddles = np.column_stack([
+    # the first puddle is the large one of cloud A, away from where the vehicle stops
+    big = [rng.uniform(0.8, 0.9) * L, rng.uniform(2.0, 3.0), min(1.6, 0.3 * L), 1.0]
+    puddles = np.vstack([big, np.column_stack([
         rng.uniform(0.15, 0.85, n_pud) * L,
         rng.uniform(-3.0, 3.0, n_pud),
         rng.uniform(0.8, 1.6, n_pud),
         rng.uniform(0.5, 1.0, n_pud),
-    ])
+    ])])
     # asphalt texture: a few sinusoids of 3-40 cm wavelength summing to the roughness RMS
     k = 12
     wl = rng.uniform(0.03, 0.4, k)
@@ -596,10 +598,10 @@ def _outlier_clumps(cond: Condition, scene: Scene, obj: Objects, rng) -> list[tu
     clumps: list[tuple] = []
     if cond.name == "A":
         # exhaust condensation hanging where the vehicle stood, and mist over the largest puddle
-        xs = cond.stop_at * L - 2.0
+        xs = cond.stop_at * L - min(2.0, 0.15 * L)  # exhaust drifts back from the stop
         y = cond.lanes[0]
         clumps.append((EXHAUST, np.array([xs, y, 0.75]), np.array([min(2.2, 0.3 * L), 1.2, 0.55])))
-        px, py, ax, ay = obj.puddles[np.argmax(obj.puddles[:, 2] * obj.puddles[:, 3])]
+        px, py, ax, ay = obj.puddles[0]
         pz = scene.road_z(np.array([px]), np.array([py]))[0]
         clumps.append((WATER, np.array([px, py, pz + 0.2]), np.array([ax, ay, 0.18])))
     elif cond.name == "B":
