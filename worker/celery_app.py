@@ -35,6 +35,10 @@ def make_app() -> Celery:
         broker_transport_options={
             "visibility_timeout": settings.visibility_timeout,
             "priority_steps": PRIORITY_STEPS,
+            # sweep for jobs of vanished workers every 5 s (kombu's default is every 100 s);
+            # a sweep re-queues only jobs older than the visibility timeout
+            "unacked_restore_interval": 5,
+            "unacked_restore_throttle": 1,
         },
         broker_connection_retry_on_startup=True,
         worker_cancel_long_running_tasks_on_connection_loss=True,

@@ -26,8 +26,9 @@ from tests.e2e.clouds import write_cloud
 from worker.pipeline import process_file
 folder = pathlib.Path(tempfile.mkdtemp())
 write_cloud(folder / "in.las", n=3000)
-for stage in ("temporal", "patch", "section"):
-    process_file(folder / "in.las", folder / "out.las", {"pipeline": [{"detector": stage}]})
+for pipeline in (None, [{"detector": "temporal", "sigma": 0.01}], [{"detector": "section"}],
+                 [{"detector": "patch", "sigma": 0.01}, {"detector": "section"}]):
+    process_file(folder / "in.las", folder / "out.las", {"pipeline": pipeline})
 """
 
 

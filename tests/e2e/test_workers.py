@@ -27,7 +27,7 @@ def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
           compiled_detectors: None) -> Iterator[Stack]:
     # a short visibility timeout, so that a job of a vanished worker is re-delivered quickly
     s = Stack(tmp_path_factory.mktemp("data"), redis_server.new_url(),
-              max_active_jobs_per_user=10, task_time_limit=30, visibility_timeout=35)
+              max_active_jobs_per_user=10, task_time_limit=60, visibility_timeout=65)
     try:
         s.start_worker()
         s.start_worker()
