@@ -1,0 +1,239 @@
+"""The ``free_space`` detector: points floating where other beams saw through (issue 5).
+
+The paper counts moving objects and airborne returns as outliers (exhaust condensation, spurious
+returns over water, a passing car); a surface test cannot see them when they are smooth (a moving
+barrier arm is a clean cylinder) or dense. Static surfaces are opaque: no beam ever passes through
+them. So a point p is transient when at least ``min_rays`` beams of the survey passed within
+``radius`` of p and ended more than ``margin`` metres beyond it (they saw through p's place).
+
+This needs the scanner position of every beam. Mobile-mapping systems deliver it as a trajectory
+(time, x, y, z of a reference point) plus each scanner's lever arm; :func:`scanner_origins`
+turns those into one origin per point (heading from the trajectory's horizontal motion).
+
+Beams are marched through a uniform grid of the points (cell edge ``cell``); only points in the
+cells a beam crosses are tested against it, so the cost is the total beam length over the cell
+size plus the candidate tests. The march stops ``margin`` before the beam's own return: a beam
+grazing a road near its end is not evidence against the road.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from algorithms.result import DetectorResult
+from worker.errors import ParameterError
+
+#: Largest number of grid cells before the cell edge is doubled (memory of the cell index).
+MAX_CELLS = 60_000_000
+
+
+def scanner_origins(
+    gps_time: np.ndarray,
+    source_id: np.ndarray,
+    trajectory: np.ndarray,
+    lever_arms: dict[int, tuple[float, float, float]],
+) -> np.ndarray:
+    """Scanner position (n, 3) for each point from a trajectory and per-scanner lever arms.
+
+    gps_time (n,) s; source_id (n,) scanner id; trajectory (m, 4) rows of time, x, y, z of the
+    vehicle's reference point, sorted by time; lever_arms: scanner id -> (forward, left, up)
+    metres in the vehicle frame. The heading is the direction of the horizontal motion between
+    trajectory samples, carried over stops (a standing vehicle keeps its last heading).
+    """
+    traj = np.asarray(trajectory, dtype=np.float64)
+    if traj.ndim != 2 or traj.shape[1] != 4 or len(traj) < 2:
+        raise ParameterError("trajectory must have rows of time x y z (at least two)")
+    tt = traj[:, 0]
+    if np.any(np.diff(tt) <= 0):
+        raise ParameterError("trajectory times must increase strictly")
+    heading = _headings(traj)
+    pos = np.column_stack([np.interp(gps_time, tt, traj[:, c]) for c in (1, 2, 3)])
+    # nearest sample's heading (interpolating angles across the wrap is not needed here)
+    j = np.clip(np.searchsorted(tt, gps_time), 0, len(tt) - 1)
+    h = heading[j]
+    fwd = np.column_stack([np.cos(h), np.sin(h)])
+    left = np.column_stack([-np.sin(h), np.cos(h)])
+    arm = np.zeros((len(gps_time), 3))
+    for sid, (f, lft, up) in lever_arms.items():
+        m = source_id == sid
+        arm[m, :2] = f * fwd[m] + lft * left[m]
+        arm[m, 2] = up
+    return pos + arm
+
+
+def _headings(traj: np.ndarray) -> np.ndarray:
+    """Heading (radians) at each trajectory sample from the horizontal motion, kept over stops."""
+    d = np.diff(traj[:, 1:3], axis=0)
+    moving = np.hypot(d[:, 0], d[:, 1]) > 1e-6
+    ang = np.arctan2(d[:, 1], d[:, 0])
+    if not moving.any():
+        return np.zeros(len(traj))
+    idx = np.where(moving, np.arange(len(d)), -1)
+    idx = np.maximum.accumulate(idx)
+    first = np.argmax(moving)
+    idx[idx < 0] = first
+    ang = ang[idx]
+    return np.append(ang, ang[-1])
+
+
+def _grid(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """Origin (3,), cell edge and shape (3,) of a grid over the points (edge grown to fit)."""
+    lo = xyz.min(axis=0) - 1e-9
+    ext = xyz.max(axis=0) - lo
+    while True:
+        shape = np.floor(ext / cell).astype(np.int64) + 1
+        if int(np.prod(shape)) <= MAX_CELLS:
+            return lo, cell, shape
+        cell *= 2.0
+
+
+@njit(cache=True)
+def _ball_cells(x, radius, lo, cell, shape, c0, c1):
+    """Grid cell ranges [c0, c1] (inclusive, clipped) overlapped by the ball around x."""
+    for a in range(3):
+        c0[a] = max(0, int(np.floor((x[a] - radius - lo[a]) / cell)))
+        c1[a] = min(shape[a] - 1, int(np.floor((x[a] + radius - lo[a]) / cell)))
+
+
+@njit(cache=True)
+def _cell_index(xyz, lo, cell, shape, radius):
+    """CSR index of points by grid cell, each point in every cell its radius-ball overlaps.
+
+    Returns (start (cells + 1,), members) with members[start[c]:start[c + 1]] the points of
+    cell c. With radius < cell / 2 a point sits in at most 8 cells.
+    """
+    n = xyz.shape[0]
+    ncell = shape[0] * shape[1] * shape[2]
+    start = np.zeros(ncell + 1, np.int64)
+    c0 = np.empty(3, np.int64)
+    c1 = np.empty(3, np.int64)
+    for i in range(n):
+        _ball_cells(xyz[i], radius, lo, cell, shape, c0, c1)
+        for ax in range(c0[0], c1[0] + 1):
+            for ay in range(c0[1], c1[1] + 1):
+                for az in range(c0[2], c1[2] + 1):
+                    start[(ax * shape[1] + ay) * shape[2] + az + 1] += 1
+    for c in range(ncell):
+        start[c + 1] += start[c]
+    members = np.empty(start[ncell], np.int64)
+    fill = start[:-1].copy()
+    for i in range(n):
+        _ball_cells(xyz[i], radius, lo, cell, shape, c0, c1)
+        for ax in range(c0[0], c1[0] + 1):
+            for ay in range(c0[1], c1[1] + 1):
+                for az in range(c0[2], c1[2] + 1):
+                    key = (ax * shape[1] + ay) * shape[2] + az
+                    members[fill[key]] = i
+                    fill[key] += 1
+    return start, members
+
+
+@njit(cache=True)
+def ray_point_test(o, p, q, radius, margin):
+    """Whether the beam o -> p passed within ``radius`` of q and ended > ``margin`` beyond it."""
+    d0 = p[0] - o[0]
+    d1 = p[1] - o[1]
+    d2 = p[2] - o[2]
+    length = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    if length <= 0.0:
+        return False
+    d0 /= length
+    d1 /= length
+    d2 /= length
+    w0 = q[0] - o[0]
+    w1 = q[1] - o[1]
+    w2 = q[2] - o[2]
+    s = w0 * d0 + w1 * d1 + w2 * d2
+    if s <= 0.0 or s >= length - margin:
+        return False
+    e0 = w0 - s * d0
+    e1 = w1 - s * d1
+    e2 = w2 - s * d2
+    return e0 * e0 + e1 * e1 + e2 * e2 < radius * radius
+
+
+@njit(cache=True, parallel=True)
+def _march(xyz, origin, lo, cell, shape, start, members, radius, margin, n_chunks):
+    """Per point, the number of beams that saw through it (chunked for thread-local counts)."""
+    n = xyz.shape[0]
+    counts = np.zeros((n_chunks, n), np.int32)
+    step = 0.5 * cell
+    size = (n + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        for i in range(c * size, min(n, (c + 1) * size)):
+            o = origin[i]
+            p = xyz[i]
+            d = p - o
+            length = np.sqrt((d * d).sum())
+            stop = length - margin
+            if stop <= 0.0:
+                continue
+            d = d / length
+            last = -1
+            s = 0.0
+            while s < stop:
+                cx = int(np.floor((o[0] + s * d[0] - lo[0]) / cell))
+                cy = int(np.floor((o[1] + s * d[1] - lo[1]) / cell))
+                cz = int(np.floor((o[2] + s * d[2] - lo[2]) / cell))
+                s += step
+                if cx < 0 or cy < 0 or cz < 0 or cx >= shape[0] or cy >= shape[1]:
+                    continue
+                if cz >= shape[2]:
+                    continue
+                key = (cx * shape[1] + cy) * shape[2] + cz
+                if key == last:
+                    continue
+                last = key
+                for m in range(start[key], start[key + 1]):
+                    j = members[m]
+                    if j != i and ray_point_test(o, p, xyz[j], radius, margin):
+                        counts[c, j] += 1
+    return counts
+
+
+def see_through_counts(
+    xyz: np.ndarray, origin: np.ndarray, *, radius: float = 0.02, margin: float = 0.3,
+    cell: float = 0.1,
+) -> np.ndarray:
+    """(n,) number of beams o_i -> p_i that passed within ``radius`` of each point and ended more
+    than ``margin`` beyond it. A point may be counted twice by one beam where the beam's march
+    visits two cells that both hold it: the count is only compared with a small minimum.
+    """
+    centre = xyz.mean(axis=0)
+    local = xyz - centre
+    o = origin - centre
+    lo, cell, shape = _grid(local, cell)
+    start, members = _cell_index(local, lo, cell, shape, radius)
+    n_chunks = 8
+    counts = _march(local, o, lo, cell, shape, start, members, radius, margin, n_chunks)
+    return counts.sum(axis=0)
+
+
+def detect_free_space(
+    xyz: np.ndarray,
+    origin: np.ndarray,
+    *,
+    radius: float = 0.02,
+    margin: float = 0.3,
+    min_rays: int = 2,
+) -> DetectorResult:
+    """Flag points that at least ``min_rays`` other beams saw through (module docstring).
+
+    xyz (n, 3) and origin (n, 3) metres (the scanner position of each point's beam). Score (n,)
+    = the see-through count; flagged = score >= min_rays; critical_value = min_rays.
+    """
+    arr = np.asarray(xyz, dtype=np.float64)
+    org = np.asarray(origin, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3 or org.shape != arr.shape:
+        raise ParameterError(f"xyz and origin must both have shape (n, 3), got {arr.shape} "
+                             f"and {org.shape}")
+    if not (np.all(np.isfinite(arr)) and np.all(np.isfinite(org))):
+        raise ParameterError("xyz or origin holds NaN or infinite values")
+    if not (radius > 0 and margin >= 0 and min_rays >= 1):
+        raise ParameterError("radius must be > 0, margin >= 0 and min_rays >= 1")
+    score = see_through_counts(arr, org, radius=radius, margin=margin).astype(np.float64)
+    flagged = score >= min_rays
+    info = {"radius": radius, "margin": margin, "min_rays": int(min_rays), "points": len(arr),
+            "points_tested": len(arr), "points_flagged": int(flagged.sum())}
+    return DetectorResult(score=score, flagged=flagged, critical_value=float(min_rays), info=info)
