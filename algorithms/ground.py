@@ -1,0 +1,658 @@
+"""The ``ground`` detector: iterative TIN-based filtering of terrain and object points.
+
+After the abstract of "Iterative TIN-based automatic filtering of sparse LiDAR data" (2010): a
+Delaunay TIN of the points in XY; each triangle is a step-edge triangle when its slope exceeds a
+threshold; in a step-edge triangle the lower vertex is terrain and the higher ones are object
+candidates, whose elevation is adjusted by interpolation with the local slope taken from the
+adjacent non-edge triangles; the slopes of the modified triangles are recomputed and the process is
+repeated until no step edge remains. Adjusted points are objects, the others terrain.
+
+The abstract leaves several things open; this implementation decides them as follows.
+
+* **Slope.** The angle in degrees between the triangle's plane and the horizontal,
+  ``atan(|grad z|)`` with ``grad z`` the plane's gradient in XY, i.e. ``arccos(|n_z| / |n|)`` of
+  its normal ``n``. A triangle is a *step-edge triangle* when that angle exceeds
+  ``slope_threshold``.
+* **Lower and higher vertices.** The *lower* vertex is the lowest of the three (ties: the smaller
+  point index). A vertex is *higher* (an object candidate) when the edge joining it to the lower
+  vertex is itself steeper than the threshold: ``z_v - z_l > tan(threshold) * |p_v - p_l|``. So in
+  a triangle with two ground points and one roof point only the roof point moves, and a thin sliver
+  whose plane is steep although none of its edges is (possible on the hull) adjusts nothing.
+* **Interpolation.** The local slope ``g`` is the mean plane gradient of the edge triangle's
+  (up to three) edge-adjacent neighbours that are not step-edge triangles (``g = 0`` when there is
+  none). The candidate's proposal is ``z_l + g . (p_v - p_l)``, the terrain extended from the lower
+  vertex along the local slope. Since ``|g| <= tan(threshold)`` the proposal is always below the
+  candidate, so an adjustment only ever lowers a point. A vertex that gets proposals from several
+  step-edge triangles in the same round takes their mean. All proposals of a round are computed
+  from the elevations at the start of the round (Jacobi order, so the result does not depend on
+  the order of the triangles). A proposal is never below the lower vertex (``g . d`` is clipped
+  at 0): an overshoot would dig a pit that spreads object labels over the terrain.
+* **Iteration.** Only the triangles that touch an adjusted vertex get their slope recomputed. The
+  loop ends when a round adjusts no vertex (remaining step-edge triangles, if any, are slivers
+  with no steep edge) or after ``max_iterations`` rounds. Each round peels one ring of points off
+  an object, so ``max_iterations`` must exceed half the width of the largest building in point
+  spacings (the default, 1000, is in practice "until converged").
+* **Step height.** An edge is only a step when its rise also exceeds ``min_object_height``
+  (close pairs of points from overlapping strips make steep but tiny steps).
+* **Low outliers** (multi-path returns below the ground) would otherwise make all their
+  neighbours "higher" and flood the terrain with object labels. Before the iteration a point more
+  than ``low_outlier_depth`` below the lower quartile of the z of its 24 nearest XY neighbours is
+  a low outlier: its elevation in the TIN is raised to that quartile and it is labelled object.
+* **Small adjustments.** A point lowered by less than ``min_object_height`` metres was a
+  terrain point on a rough or steep slope, not an object: ground in the end.
+* **Terraces.** The iteration cannot tell a building from an upper terrace or an embankment top:
+  both begin at a step and are peeled ring by ring. Refinement (a well-known morphological one,
+  as in SMRF): the lowest point per cell of about one point spacing is rasterised and opened with
+  a square window of ``max_object_size`` metres, which removes objects narrower than the window
+  but keeps wider raised ground. An adjusted point within ``min_object_height + 1.2 * grade`` of
+  that opened surface (grade = its local tan(slope)) is terrain.
+* **Duplicate XY points.** Only the lowest point of each XY position enters the TIN. The others
+  are ground when their representative is ground and they lie within ``min_object_height`` of its
+  adjusted elevation; otherwise object.
+* **Multiple returns.** All points given are used as they are; a caller that wants last returns
+  only selects them before the call.
+
+Triangulation: Shewchuk's Triangle (package ``triangle``) when it is installed, ten times faster
+than scipy's Qhull in 2-D; otherwise ``scipy.spatial.Delaunay``. Both give a Delaunay TIN (they
+may split co-circular quadrilaterals differently).
+
+Elevations are centred before any arithmetic (XY by the bounding box centre) so that UTM or
+geocentric coordinates lose no precision.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numba import njit
+from scipy.ndimage import distance_transform_edt, grey_opening
+from scipy.spatial import Delaunay, cKDTree
+
+from worker.errors import ParameterError
+
+try:  # Shewchuk's Triangle is ~10x faster than Qhull in 2-D; optional (non-commercial licence).
+    import triangle as _triangle
+except ImportError:  # pragma: no cover - depends on the environment
+    _triangle = None
+
+
+@dataclass
+class GroundResult:
+    """Per-point outcome of :func:`classify_ground` on n points.
+
+    Attributes
+    ----------
+    is_ground : (n,) bool
+        True for terrain points, False for object points (and low outliers).
+    adjusted_z : (n,) float64
+        The terrain elevation under each point: its own z for ground, the adjusted (lowered, or
+        for low outliers raised) elevation for objects.
+    info : dict
+        JSON-ready facts: ``iterations``, ``edge_triangles_per_iteration``,
+        ``adjusted_per_iteration``, ``triangles``, ``low_outliers``, ``duplicates``,
+        ``remaining_edge_triangles``, ``converged``, ``triangulator`` and the parameters used.
+    """
+
+    is_ground: np.ndarray
+    adjusted_z: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def classify_ground(
+    xyz: np.ndarray,
+    *,
+    slope_threshold: float = 45.0,
+    max_iterations: int = 1000,
+    min_object_height: float = 0.5,
+    low_outlier_depth: float = 2.0,
+    max_object_size: float = 20.0,
+) -> GroundResult:
+    """Separate terrain from object points by iterative elimination of TIN step edges.
+
+    Steps: (1) centre; (2) one Delaunay TIN in XY of the lowest point per XY position;
+    (3) low outliers raised; (4) step-edge iteration (slope, lower/higher vertices, adjustment by
+    the local slope, re-slope, repeat); (5) small adjustments are terrain; (6) adjusted points
+    within the slope-aware tolerance of the opened lowest-point surface are terrain (terraces);
+    (7) duplicate XY points take their representative's label.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+        Point coordinates in metres.
+    slope_threshold : float
+        Degrees, in (0, 90): triangles steeper than this are step-edge triangles.
+    max_iterations : int
+        Adjust-and-retest rounds at most (>= 1); one round peels one ring of points off an object.
+    min_object_height : float
+        Metres (>= 0): the least rise of a step edge, and points lowered by less are terrain.
+    low_outlier_depth : float
+        Metres (> 0): a point this far below the lower quartile of its 24 nearest neighbours is a
+        low outlier.
+    max_object_size : float
+        Metres (>= 0, 0 disables step 6): width of the opening window; raised ground wider than
+        this is terrain, objects wider than this can be missed.
+
+    Returns
+    -------
+    GroundResult
+    """
+    xyz = _check_input(
+        xyz, slope_threshold, max_iterations, min_object_height, low_outlier_depth, max_object_size
+    )
+    n = xyz.shape[0]
+    params = {
+        "slope_threshold": float(slope_threshold),
+        "max_iterations": int(max_iterations),
+        "min_object_height": float(min_object_height),
+        "low_outlier_depth": float(low_outlier_depth),
+        "max_object_size": float(max_object_size),
+    }
+    if n < 3:
+        return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
+
+    xy, z = centre(xyz)  # step 1
+    rep, unique_idx = lowest_per_xy(xy, z)  # step 2
+    tri, nbr, name = triangulate(xy[unique_idx])
+    if tri.shape[0] == 0:  # all points collinear in XY: nothing to triangulate, nothing to filter
+        return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
+    tri = unique_idx[tri]  # back to indices into all points
+
+    z_adj = z.copy()
+    low, low_ref = find_low_outliers(xy, z, low_outlier_depth)  # step 3
+    z_adj[low] = low_ref[low]
+
+    tan_thr = math.tan(math.radians(slope_threshold))
+    inv, valid = gradient_operators(xy, tri)
+    adjusted, pending, edges, moved, remaining = iterate_step_edges(  # step 4
+        xy, z_adj, tri, nbr, inv, valid, tan_thr, min_object_height, int(max_iterations)
+    )
+    adjusted &= ~low
+    small = adjusted & (z - z_adj < min_object_height)  # step 5
+    terrace = np.zeros(n, bool)
+    if max_object_size > 0:  # step 6
+        opened, grade = opened_minimum_surface(xy, z_adj * low + z * ~low, max_object_size)
+        terrace = adjusted & ~small & (z - opened < min_object_height + SLOPE_TOLERANCE * grade)
+    is_ground = ~low & (~adjusted | small | terrace)
+    z_adj[is_ground] = z[is_ground]
+    is_ground, z_adj = _resolve_duplicates(  # step 7
+        z, z_adj, rep, unique_idx, is_ground, min_object_height
+    )
+
+    info = {
+        **params,
+        "points": int(n),
+        "triangles": int(tri.shape[0]),
+        "triangulator": name,
+        "duplicates": int(n - unique_idx.size),
+        "low_outliers": int(np.count_nonzero(low)),
+        "iterations": len(edges),
+        "edge_triangles_per_iteration": [int(e) for e in edges],
+        "adjusted_per_iteration": [int(m) for m in moved],
+        "remaining_edge_triangles": int(remaining),
+        "converged": bool(not pending.any()),
+        "small_adjustments": int(np.count_nonzero(small)),
+        "terrace_points": int(np.count_nonzero(terrace)),
+        "ground_points": int(np.count_nonzero(is_ground)),
+    }
+    return GroundResult(is_ground, z_adj + _z_offset(xyz), info)
+
+
+def _z_offset(xyz: np.ndarray) -> float:
+    return float(np.median(xyz[:, 2]))
+
+
+def _empty_info(params: dict[str, Any], n: int) -> dict[str, Any]:
+    return {
+        **params,
+        "points": int(n),
+        "triangles": 0,
+        "triangulator": None,
+        "duplicates": 0,
+        "low_outliers": 0,
+        "iterations": 0,
+        "edge_triangles_per_iteration": [],
+        "adjusted_per_iteration": [],
+        "remaining_edge_triangles": 0,
+        "converged": True,
+        "small_adjustments": 0,
+        "terrace_points": 0,
+        "ground_points": int(n),
+    }
+
+
+def _check_input(
+    xyz: np.ndarray,
+    slope_threshold: float,
+    max_iterations: int,
+    min_object_height: float,
+    low_outlier_depth: float,
+    max_object_size: float,
+) -> np.ndarray:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ParameterError(f"xyz must have shape (n, 3), got {xyz.shape}")
+    if not np.all(np.isfinite(xyz)):
+        raise ParameterError("xyz holds NaN or infinite coordinates")
+    if not 0.0 < slope_threshold < 90.0:
+        raise ParameterError(f"slope_threshold must be in (0, 90) degrees, got {slope_threshold!r}")
+    if int(max_iterations) != max_iterations or max_iterations < 1:
+        raise ParameterError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+    if not min_object_height >= 0.0:
+        raise ParameterError(f"min_object_height must be >= 0 metres, got {min_object_height!r}")
+    if not low_outlier_depth > 0.0:
+        raise ParameterError(f"low_outlier_depth must be > 0 metres, got {low_outlier_depth!r}")
+    if not max_object_size >= 0.0:
+        raise ParameterError(f"max_object_size must be >= 0 metres, got {max_object_size!r}")
+    return xyz
+
+
+def centre(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local coordinates: XY minus the bounding-box centre, z minus the median z.
+
+    Returns ``xy`` (n, 2) and ``z`` (n,), both float64.
+    """
+    lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    xy = xyz[:, :2] - 0.5 * (lo + hi)
+    z = xyz[:, 2] - _z_offset(xyz)
+    return np.ascontiguousarray(xy), np.ascontiguousarray(z)
+
+
+def lowest_per_xy(xy: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Group points with identical XY; keep the lowest of each group for the TIN.
+
+    Returns
+    -------
+    rep : (n,) int64
+        Index of the representative (lowest point) of each point's XY group.
+    unique_idx : (u,) int64
+        Sorted indices of the representatives.
+    """
+    order = np.lexsort((z, xy[:, 1], xy[:, 0]))
+    sx, sy = xy[order, 0], xy[order, 1]
+    starts = np.ones(order.size, bool)
+    starts[1:] = (sx[1:] != sx[:-1]) | (sy[1:] != sy[:-1])
+    group = np.cumsum(starts) - 1
+    first = order[starts]  # lowest z comes first within a group
+    rep = np.empty(order.size, np.int64)
+    rep[order] = first[group]
+    return rep, np.sort(first)
+
+
+def triangulate(xy: np.ndarray, backend: str = "auto") -> tuple[np.ndarray, np.ndarray, str]:
+    """Delaunay triangulation of distinct points in XY.
+
+    Returns ``tri`` (m, 3) int64 vertex indices, ``nbr`` (m, 3) int64 edge-adjacent triangles
+    (-1 on the hull) and the name of the triangulator used. ``backend`` "auto" takes
+    Shewchuk's Triangle when it is installed, else "qhull" (scipy.spatial.Delaunay).
+    """
+    if xy.shape[0] < 3 or np.linalg.matrix_rank(xy - xy.mean(axis=0), tol=1e-9) < 2:
+        return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64), "none"
+    if backend == "triangle" or (backend == "auto" and _triangle is not None):
+        out = _triangle.triangulate({"vertices": xy}, "Qn")
+        return out["triangles"].astype(np.int64), out["neighbors"].astype(np.int64), "triangle"
+    d = Delaunay(xy)
+    return d.simplices.astype(np.int64), d.neighbors.astype(np.int64), "qhull"
+
+
+@njit(cache=True)
+def gradient_operators(xy: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle the 2x2 inverse that maps vertex height differences to the plane gradient.
+
+    With ``A = [[x1 - x0, y1 - y0], [x2 - x0, y2 - y0]]`` the plane through the three vertices has
+    gradient ``g = A^-1 [z1 - z0, z2 - z0]``. Returns ``inv`` (m, 4) row-major A^-1 and
+    ``valid`` (m,) bool (False for a degenerate triangle, whose slope is taken as 0).
+    """
+    m = tri.shape[0]
+    inv = np.zeros((m, 4))
+    valid = np.zeros(m, np.bool_)
+    for t in range(m):
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        ax, ay = xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1]
+        bx, by = xy[c, 0] - xy[a, 0], xy[c, 1] - xy[a, 1]
+        det = ax * by - ay * bx
+        scale = (ax * ax + ay * ay) * (bx * bx + by * by)
+        if det * det <= 1e-24 * scale or scale == 0.0:
+            continue
+        inv[t, 0] = by / det
+        inv[t, 1] = -ay / det
+        inv[t, 2] = -bx / det
+        inv[t, 3] = ax / det
+        valid[t] = True
+    return inv, valid
+
+
+@njit(cache=True)
+def _gradient(t: int, tri: np.ndarray, z: np.ndarray, inv: np.ndarray) -> tuple[float, float]:
+    a = tri[t, 0]
+    d1 = z[tri[t, 1]] - z[a]
+    d2 = z[tri[t, 2]] - z[a]
+    return inv[t, 0] * d1 + inv[t, 1] * d2, inv[t, 2] * d1 + inv[t, 3] * d2
+
+
+def triangle_slopes(xy: np.ndarray, z: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Slope of each triangle in degrees, (m,) float64: atan(|grad z|) of its plane."""
+    inv, valid = gradient_operators(xy, tri)
+    d1 = z[tri[:, 1]] - z[tri[:, 0]]
+    d2 = z[tri[:, 2]] - z[tri[:, 0]]
+    gx = inv[:, 0] * d1 + inv[:, 1] * d2
+    gy = inv[:, 2] * d1 + inv[:, 3] * d2
+    return np.where(valid, np.degrees(np.arctan(np.hypot(gx, gy))), 0.0)
+
+
+@njit(cache=True)
+def raise_low_outliers(
+    xy: np.ndarray,
+    z: np.ndarray,
+    tri: np.ndarray,
+    tan_thr: float,
+    min_depth: float,
+    low: np.ndarray,
+) -> int:
+    """One pass of low-outlier removal, in place on ``z`` and ``low``.
+
+    A vertex is a low outlier when every TIN edge leaving it climbs by more than ``min_depth`` and
+    more steeply than ``tan_thr``. It is raised to the elevation of its lowest neighbour (so that it
+    no longer makes its neighbours look like objects) and marked in ``low``. Returns the number
+    found in this pass.
+    """
+    n = z.shape[0]
+    is_pit = np.zeros(n, np.bool_)
+    in_tin = np.zeros(n, np.bool_)
+    lowest_nb = np.full(n, np.inf)
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            a, b = tri[t, k], tri[t, (k + 1) % 3]
+            in_tin[a] = True
+            in_tin[b] = True
+    is_pit[:] = in_tin
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            a, b = tri[t, k], tri[t, (k + 1) % 3]
+            d = math.hypot(xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1])
+            dz = z[b] - z[a]
+            if not (dz > min_depth and dz > tan_thr * d):
+                is_pit[a] = False
+            if not (-dz > min_depth and -dz > tan_thr * d):
+                is_pit[b] = False
+            lowest_nb[a] = min(lowest_nb[a], z[b])
+            lowest_nb[b] = min(lowest_nb[b], z[a])
+    found = 0
+    for v in range(n):
+        if is_pit[v]:
+            z[v] = lowest_nb[v]
+            low[v] = True
+            found += 1
+    return found
+
+
+@njit(cache=True)
+def _vertex_triangles(tri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR map vertex -> incident triangles: ``idx[ptr[v]:ptr[v + 1]]``."""
+    ptr = np.zeros(n + 1, np.int64)
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            ptr[tri[t, k] + 1] += 1
+    for v in range(n):
+        ptr[v + 1] += ptr[v]
+    fill = ptr[:-1].copy()
+    idx = np.empty(ptr[n], np.int64)
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            v = tri[t, k]
+            idx[fill[v]] = t
+            fill[v] += 1
+    return ptr, idx
+
+
+@njit(cache=True)
+def _lowest_vertex(t: int, tri: np.ndarray, z: np.ndarray) -> int:
+    best = tri[t, 0]
+    for k in range(1, 3):
+        v = tri[t, k]
+        if z[v] < z[best] or (z[v] == z[best] and v < best):
+            best = v
+    return best
+
+
+@njit(cache=True)
+def adjust_step_edges(
+    xy: np.ndarray,
+    z: np.ndarray,
+    tri: np.ndarray,
+    nbr: np.ndarray,
+    grad: np.ndarray,
+    is_edge: np.ndarray,
+    edge_list: np.ndarray,
+    tan_thr: float,
+    min_step: float,
+    prop_sum: np.ndarray,
+    prop_cnt: np.ndarray,
+    touched: np.ndarray,
+) -> int:
+    """One round of proposals: for each step-edge triangle in ``edge_list``, the elevation its
+    higher vertices would get from the lower vertex and the local slope of the non-edge neighbours.
+
+    Accumulates into ``prop_sum``/``prop_cnt`` (zero on entry) and lists the vertices that got a
+    proposal in ``touched``; returns their number. Nothing in ``z`` changes here.
+    """
+    n_touched = 0
+    for i in range(edge_list.shape[0]):
+        t = edge_list[i]
+        low = _lowest_vertex(t, tri, z)
+        gx = 0.0
+        gy = 0.0
+        cnt = 0
+        for k in range(3):
+            u = nbr[t, k]
+            if u >= 0 and not is_edge[u]:
+                gx += grad[u, 0]
+                gy += grad[u, 1]
+                cnt += 1
+        if cnt > 0:
+            gx /= cnt
+            gy /= cnt
+        for k in range(3):
+            v = tri[t, k]
+            if v == low:
+                continue
+            dx = xy[v, 0] - xy[low, 0]
+            dy = xy[v, 1] - xy[low, 1]
+            rise = z[v] - z[low]
+            if rise > min_step and rise > tan_thr * math.hypot(dx, dy):
+                if prop_cnt[v] == 0:
+                    touched[n_touched] = v
+                    n_touched += 1
+                # never below the lower vertex: an overshoot would make a pit that spreads
+                prop_sum[v] += z[low] + max(gx * dx + gy * dy, 0.0)
+                prop_cnt[v] += 1
+    return n_touched
+
+
+@njit(cache=True)
+def iterate_step_edges(
+    xy: np.ndarray,
+    z: np.ndarray,
+    tri: np.ndarray,
+    nbr: np.ndarray,
+    inv: np.ndarray,
+    valid: np.ndarray,
+    tan_thr: float,
+    min_step: float,
+    max_iterations: int,
+) -> tuple[np.ndarray, np.ndarray, list[int], list[int], int]:
+    """The TIN step-edge iteration, in place on ``z`` (the adjusted elevations).
+
+    Returns ``adjusted`` (n,) bool, ``pending`` (n,) bool (vertices a further round would still
+    adjust), the number of step-edge triangles at the start of each round,
+    the number of vertices adjusted in each round, and the step-edge triangles left at the end.
+    """
+    n = z.shape[0]
+    m = tri.shape[0]
+    ptr, vt = _vertex_triangles(tri, n)
+    grad = np.zeros((m, 2))
+    is_edge = np.zeros(m, np.bool_)
+    tan2 = tan_thr * tan_thr
+    n_edge = 0
+    for t in range(m):  # step 1: slope of every triangle
+        if valid[t]:
+            gx, gy = _gradient(t, tri, z, inv)
+            grad[t, 0] = gx
+            grad[t, 1] = gy
+            if gx * gx + gy * gy > tan2:
+                is_edge[t] = True
+                n_edge += 1
+    edge_list = np.empty(n_edge, np.int64)
+    j = 0
+    for t in range(m):
+        if is_edge[t]:
+            edge_list[j] = t
+            j += 1
+
+    adjusted = np.zeros(n, np.bool_)
+    prop_sum = np.zeros(n)
+    prop_cnt = np.zeros(n, np.int64)
+    touched = np.empty(n, np.int64)
+    stamp = np.full(m, -1, np.int64)
+    edges_per_round: list[int] = []
+    moved_per_round: list[int] = []
+    for it in range(max_iterations):
+        if edge_list.shape[0] == 0:
+            break
+        edges_per_round.append(edge_list.shape[0])
+        # step 2: lower vertex terrain, higher vertices get proposals from the local slope
+        n_touched = adjust_step_edges(
+            xy, z, tri, nbr, grad, is_edge, edge_list, tan_thr, min_step,
+            prop_sum, prop_cnt, touched,
+        )
+        moved_per_round.append(n_touched)
+        if n_touched == 0:
+            break
+        # step 3: apply the mean proposal of each candidate; it becomes an object point
+        for i in range(n_touched):
+            v = touched[i]
+            z[v] = prop_sum[v] / prop_cnt[v]
+            adjusted[v] = True
+            prop_sum[v] = 0.0
+            prop_cnt[v] = 0
+        # step 4: recompute the slopes of the modified triangles, collect the new step edges
+        cand = np.empty(edge_list.shape[0] + 12 * n_touched, np.int64)
+        nc = 0
+        for i in range(edge_list.shape[0]):
+            t = edge_list[i]
+            stamp[t] = it
+            cand[nc] = t
+            nc += 1
+        for i in range(n_touched):
+            v = touched[i]
+            for p in range(ptr[v], ptr[v + 1]):
+                t = vt[p]
+                if stamp[t] != it:
+                    stamp[t] = it
+                    if nc == cand.shape[0]:
+                        grown = np.empty(2 * nc, np.int64)
+                        grown[:nc] = cand[:nc]
+                        cand = grown
+                    cand[nc] = t
+                    nc += 1
+        k = 0
+        for i in range(nc):
+            t = cand[i]
+            if valid[t]:
+                gx, gy = _gradient(t, tri, z, inv)
+                grad[t, 0] = gx
+                grad[t, 1] = gy
+                is_edge[t] = gx * gx + gy * gy > tan2
+            if is_edge[t]:
+                cand[k] = t
+                k += 1
+        edge_list = cand[:k].copy()
+    # vertices that a further round would still move: the front of an unfinished peel
+    pending = np.zeros(n, np.bool_)
+    n_touched = adjust_step_edges(
+        xy, z, tri, nbr, grad, is_edge, edge_list, tan_thr, min_step, prop_sum, prop_cnt, touched
+    )
+    for i in range(n_touched):
+        pending[touched[i]] = True
+    return adjusted, pending, edges_per_round, moved_per_round, edge_list.shape[0]
+
+
+def _resolve_duplicates(
+    z: np.ndarray,
+    z_adj: np.ndarray,
+    rep: np.ndarray,
+    unique_idx: np.ndarray,
+    is_ground: np.ndarray,
+    tol: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Label the points left out of the TIN (same XY as a lower point) from their representative."""
+    dup = rep != np.arange(rep.size)
+    if not dup.any():
+        return is_ground, z_adj
+    r = rep[dup]
+    z_adj = z_adj.copy()
+    z_adj[dup] = z_adj[r]
+    is_ground = is_ground.copy()
+    is_ground[dup] = is_ground[r] & (np.abs(z[dup] - z_adj[r]) < tol)
+    z_adj[dup & is_ground] = z[dup & is_ground]
+    return is_ground, z_adj
+
+
+#: Tolerance growth with the terrain grade in step 6 (metres per unit of tan(slope)); SMRF's 1.2.
+SLOPE_TOLERANCE = 1.2
+LOW_NEIGHBOURS = 24
+LOW_QUANTILE = 0.25
+
+
+def _low_reference(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Per point the lower quartile of the z of its LOW_NEIGHBOURS nearest XY neighbours, (n,)."""
+    k = min(LOW_NEIGHBOURS + 1, xy.shape[0])
+    _, idx = cKDTree(xy).query(xy, k=k, workers=-1)
+    zn = z[idx[:, 1:]]
+    kth = int(LOW_QUANTILE * (zn.shape[1] - 1))  # order statistic: no interpolation needed
+    return np.partition(zn, kth, axis=1)[:, kth]
+
+
+def find_low_outliers(
+    xy: np.ndarray, z: np.ndarray, depth: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points more than ``depth`` metres below the lower quartile of their 24 nearest neighbours.
+
+    Multi-path returns lie well below the terrain, alone or in small clusters; a point next to a
+    building still has terrain neighbours in its lower quartile, so it is not caught. Returns the
+    (n,) bool mask and the (n,) reference elevations (the lower quartiles).
+    """
+    if xy.shape[0] < 4:
+        return np.zeros(xy.shape[0], bool), z.copy()
+    ref = _low_reference(xy, z)
+    return z < ref - depth, ref
+
+
+def opened_minimum_surface(xy: np.ndarray, z: np.ndarray, window: float) -> np.ndarray:
+    """Morphological opening of the lowest-point raster, sampled at the points, (n,) float64.
+
+    Cells of about one point spacing hold the lowest z that falls in them (empty cells take their
+    nearest filled cell); a grey opening with a square of ``window`` metres removes everything
+    narrower than the window (objects) but keeps wider raised ground (terraces, embankment tops).
+    """
+    n = z.shape[0]
+    lo = xy.min(axis=0)
+    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
+    cell = max(float(np.sqrt(ext[0] * ext[1] / n)), 1e-3)
+    shape = (ext / cell).astype(np.int64) + 1
+    ij = ((xy - lo) / cell).astype(np.int64)
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    grid = np.full(shape[0] * shape[1], np.inf)
+    np.minimum.at(grid, flat, z)
+    grid = grid.reshape(shape)
+    empty = ~np.isfinite(grid)
+    if empty.any():
+        _, (ii, jj) = distance_transform_edt(empty, return_indices=True)
+        grid = grid[ii, jj]
+    w = max(int(round(window / cell)) | 1, 1)
+    opened = grey_opening(grid, size=(w, w))
+    gx, gy = np.gradient(opened, cell)
+    grade = np.hypot(gx, gy)
+    return opened.reshape(-1)[flat], grade.reshape(-1)[flat]

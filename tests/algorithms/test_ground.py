@@ -1,0 +1,287 @@
+"""The ``ground`` detector: fast TIN steps against per-triangle loops, properties, ISPRS scores."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from algorithms import ground as G
+from algorithms.ground import classify_ground
+from algorithms.metrics import ground_scores
+from worker.errors import ParameterError
+
+ISPRS = Path(__file__).resolve().parents[1] / "data" / "isprs"
+SAMPLES = ["samp11", "samp21", "samp31", "samp41", "samp51", "samp61", "samp71"]
+
+
+# ---------------------------------------------------------------- slow, obviously-correct versions
+def slow_slope_deg(p: np.ndarray) -> float:
+    """Slope of the plane through three 3-D points from its normal: arccos(|n_z| / |n|)."""
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    return math.degrees(math.acos(abs(n[2]) / np.linalg.norm(n)))
+
+
+def slow_gradient(p: np.ndarray) -> np.ndarray:
+    """Plane z = a x + b y + c through three points by an explicit 3x3 solve; returns (a, b)."""
+    m = np.column_stack([p[:, 0], p[:, 1], np.ones(3)])
+    return np.linalg.solve(m, p[:, 2])[:2]
+
+
+def slow_round(xy, z, tri, tan_thr, min_step):
+    """One round of the step-edge adjustment with plain loops over triangles.
+
+    Returns the new elevations and the vertices adjusted in this round.
+    """
+    m = len(tri)
+    grads = [slow_gradient(np.column_stack([xy[t], z[t]])) for t in tri]
+    edge = [np.hypot(*g) > tan_thr for g in grads]
+    proposals: dict[int, list[float]] = {}
+    for t in range(m):
+        if not edge[t]:
+            continue
+        verts = list(tri[t])
+        low = min(verts, key=lambda v: (z[v], v))
+        # neighbours: the triangles sharing two vertices (an edge) with t
+        nbrs = [u for u in range(m) if u != t and len(set(tri[u]) & set(verts)) == 2]
+        good = [grads[u] for u in nbrs if not edge[u]]
+        g = np.mean(good, axis=0) if good else np.zeros(2)
+        for v in verts:
+            if v == low:
+                continue
+            d = xy[v] - xy[low]
+            rise = z[v] - z[low]
+            if rise > min_step and rise > tan_thr * np.hypot(*d):
+                proposals.setdefault(v, []).append(z[low] + max(float(g @ d), 0.0))
+    z_new = z.copy()
+    for v, ps in proposals.items():
+        z_new[v] = np.mean(ps)
+    return z_new, set(proposals)
+
+
+def random_tin(seed: int, n: int = 60):
+    rng = np.random.default_rng(seed)
+    xy = rng.random((n, 2)) * 20
+    z = 0.2 * xy[:, 0] + 0.3 * rng.standard_normal(n)
+    bumps = rng.random(n) < 0.25
+    z[bumps] += rng.uniform(1, 8, bumps.sum())
+    tri, nbr, _ = G.triangulate(xy)
+    return xy, z, tri, nbr
+
+
+# ---------------------------------------------------------------- fast vs slow
+@pytest.mark.parametrize("seed", range(5))
+def test_triangle_slopes_match_normal_vector_formula(seed):
+    xy, z, tri, _ = random_tin(seed)
+    fast = G.triangle_slopes(xy, z, tri)
+    slow = np.array([slow_slope_deg(np.column_stack([xy[t], z[t]])) for t in tri])
+    np.testing.assert_allclose(fast, slow, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_one_adjustment_round_matches_triangle_loop(seed):
+    xy, z, tri, nbr = random_tin(seed)
+    tan_thr, min_step = math.tan(math.radians(45.0)), 0.5
+    inv, valid = G.gradient_operators(xy, tri)
+    z_fast = z.copy()
+    adjusted, *_ = G.iterate_step_edges(xy, z_fast, tri, nbr, inv, valid, tan_thr, min_step, 1)
+    z_slow, moved = slow_round(xy, z, tri, tan_thr, min_step)
+    assert moved, "the random TIN must contain step edges for this test to mean anything"
+    assert set(np.flatnonzero(adjusted)) == moved
+    np.testing.assert_allclose(z_fast, z_slow, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_full_iteration_matches_repeated_slow_rounds(seed):
+    xy, z, tri, nbr = random_tin(seed, n=80)
+    tan_thr, min_step = math.tan(math.radians(45.0)), 0.5
+    inv, valid = G.gradient_operators(xy, tri)
+    z_fast = z.copy()
+    adjusted, pending, edges, moved, _ = G.iterate_step_edges(
+        xy, z_fast, tri, nbr, inv, valid, tan_thr, min_step, 500
+    )
+    z_slow, ever = z.copy(), set()
+    for _ in range(500):
+        z_slow, round_moved = slow_round(xy, z_slow, tri, tan_thr, min_step)
+        if not round_moved:
+            break
+        ever |= round_moved
+    assert not pending.any()
+    assert set(np.flatnonzero(adjusted)) == ever
+    np.testing.assert_allclose(z_fast, z_slow, rtol=1e-9, atol=1e-9)
+    assert len(edges) == len(moved) and moved[-1] == 0
+
+
+def test_adjustment_only_lowers_and_never_below_the_lower_vertex():
+    xy, z, tri, nbr = random_tin(11, n=120)
+    inv, valid = G.gradient_operators(xy, tri)
+    z_fast = z.copy()
+    adjusted, *_ = G.iterate_step_edges(xy, z_fast, tri, nbr, inv, valid, 1.0, 0.5, 1000)
+    assert adjusted.any()
+    assert np.all(z_fast <= z)
+    assert np.all(z_fast >= z.min())
+
+
+def test_triangulators_agree_on_points_in_general_position():
+    pytest.importorskip("triangle")
+    rng = np.random.default_rng(3)
+    xy = rng.random((300, 2)) * 50
+    a, _, name_a = G.triangulate(xy, backend="triangle")
+    b, _, name_b = G.triangulate(xy, backend="qhull")
+    assert (name_a, name_b) == ("triangle", "qhull")
+    assert {tuple(sorted(t)) for t in a} == {tuple(sorted(t)) for t in b}
+
+
+def test_neighbours_share_an_edge():
+    xy, _, tri, nbr = random_tin(5)
+    for t in range(len(tri)):
+        for u in nbr[t]:
+            if u >= 0:
+                assert len(set(tri[t]) & set(tri[u])) == 2
+
+
+# ---------------------------------------------------------------- properties on synthetic scenes
+def scene(seed: int = 0, shift: float = 0.0):
+    """Tilted ground at ~1 pt/m2 with a 12 x 12 m box building (8 m) and a tree (10 m)."""
+    rng = np.random.default_rng(seed)
+    n = 5000
+    x, y = rng.random(n) * 70, rng.random(n) * 70
+    z = 0.1 * x + 0.05 * y + 0.03 * rng.standard_normal(n)
+    building = (np.abs(x - 25) < 6) & (np.abs(y - 25) < 6)
+    tree = np.hypot(x - 50, y - 50) < 3
+    obj = building | tree
+    z[building] += 8
+    z[tree] += 10 - np.hypot(x - 50, y - 50)[tree]
+    xyz = np.column_stack([x + shift, y + shift, z + (300 if shift else 0)])
+    return xyz, ~obj
+
+
+def test_box_and_tree_are_objects_and_ground_is_ground():
+    xyz, truth = scene()
+    res = classify_ground(xyz)
+    s = ground_scores(truth, res.is_ground)
+    assert s["type_ii_pct"] == 0.0
+    assert s["type_i_pct"] < 0.5
+    assert res.info["converged"]
+    assert res.info["edge_triangles_per_iteration"][0] > 0
+    # objects sit on the terrain model: adjusted z close to the tilted plane under them
+    plane = 0.1 * xyz[:, 0] + 0.05 * xyz[:, 1]
+    assert np.max(np.abs(res.adjusted_z[~truth] - plane[~truth])) < 1.5
+
+
+def test_result_unchanged_by_utm_sized_coordinates():
+    xyz, _ = scene()
+    far, _ = scene(shift=5_000_000.0)
+    a, b = classify_ground(xyz), classify_ground(far)
+    np.testing.assert_array_equal(a.is_ground, b.is_ground)
+    np.testing.assert_allclose(a.adjusted_z + 300, b.adjusted_z, atol=1e-6)
+
+
+def test_low_outlier_is_object_and_does_not_spread():
+    xyz, truth = scene()
+    xyz = np.vstack([xyz, [[10.3, 60.2, 1.0 - 15.0]], [[10.9, 60.8, 1.0 - 14.0]]])
+    truth = np.append(truth, [False, False])
+    res = classify_ground(xyz)
+    assert not res.is_ground[-2:].any()
+    assert res.info["low_outliers"] >= 2
+    assert ground_scores(truth, res.is_ground)["type_i_pct"] < 0.5
+
+
+def test_duplicate_xy_points():
+    xyz, truth = scene()
+    ground_dup = xyz[truth][:20] + [0, 0, 0.1]  # 10 cm above a ground point: ground
+    high_dup = xyz[truth][20:40] + [0, 0, 6.0]  # 6 m above a ground point: object
+    res = classify_ground(np.vstack([xyz, ground_dup, high_dup]))
+    n = len(xyz)
+    assert res.info["duplicates"] == 40
+    assert res.is_ground[n : n + 20].all()
+    assert not res.is_ground[n + 20 :].any()
+    # the lowest of each XY position is the one triangulated: the originals stay ground
+    assert res.is_ground[np.flatnonzero(truth)[:40]].all()
+
+
+def test_wide_terrace_is_ground_unless_the_terrace_step_is_disabled():
+    rng = np.random.default_rng(4)
+    n = 6000
+    x, y = rng.random(n) * 120, rng.random(n) * 60
+    z = np.where(x > 60, 5.0, 0.0) + 0.03 * rng.standard_normal(n)
+    xyz = np.column_stack([x, y, z])
+    assert classify_ground(xyz).is_ground.mean() > 0.99
+    # the bare step-edge iteration peels the upper terrace like a roof: the known weakness
+    bare = classify_ground(xyz, max_object_size=0.0)
+    assert (~bare.is_ground[x > 60]).mean() > 0.9
+
+
+def test_iteration_cap_is_reported():
+    xyz, _ = scene()
+    res = classify_ground(xyz, max_iterations=1)
+    assert res.info["iterations"] == 1
+    assert not res.info["converged"]
+
+
+@pytest.mark.parametrize("n", [0, 1, 2])
+def test_tiny_inputs_are_all_ground(n):
+    res = classify_ground(np.zeros((n, 3)) + np.arange(n)[:, None])
+    assert res.is_ground.shape == (n,) and res.is_ground.all()
+
+
+def test_collinear_points_are_all_ground():
+    t = np.linspace(0, 10, 20)
+    res = classify_ground(np.column_stack([t, 2 * t, np.sin(t)]))
+    assert res.is_ground.all()
+    assert res.info["triangles"] == 0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"slope_threshold": 90.0}, "slope_threshold"),
+        ({"slope_threshold": 0.0}, "slope_threshold"),
+        ({"max_iterations": 0}, "max_iterations"),
+        ({"min_object_height": -1.0}, "min_object_height"),
+        ({"low_outlier_depth": 0.0}, "low_outlier_depth"),
+        ({"max_object_size": -5.0}, "max_object_size"),
+    ],
+)
+def test_bad_parameters_are_refused_by_name(kwargs, match):
+    with pytest.raises(ParameterError, match=match):
+        classify_ground(np.zeros((5, 3)), **kwargs)
+
+
+def test_bad_coordinates_are_refused():
+    with pytest.raises(ParameterError, match="shape"):
+        classify_ground(np.zeros((5, 2)))
+    bad = np.zeros((5, 3))
+    bad[2, 1] = np.nan
+    with pytest.raises(ParameterError, match="NaN"):
+        classify_ground(bad)
+
+
+# ---------------------------------------------------------------- ISPRS reference samples
+def _isprs_scores(name: str) -> dict:
+    las = laspy.read(ISPRS / f"{name}.laz")
+    truth = np.asarray(las.classification) == 2
+    las.classification[:] = 0  # the filter must not see the truth
+    xyz = np.column_stack([las.x, las.y, las.z])
+    return ground_scores(truth, classify_ground(xyz).is_ground)
+
+
+@pytest.fixture(scope="module")
+def isprs_scores() -> dict[str, dict]:
+    return {name: _isprs_scores(name) for name in SAMPLES}
+
+
+def test_isprs_mean_total_error_bound(isprs_scores):
+    mean_total = np.mean([s["total_error_pct"] for s in isprs_scores.values()])
+    assert mean_total < 10.5  # 9.7 % measured with the defaults
+
+
+@pytest.mark.parametrize("name", SAMPLES)
+def test_isprs_per_sample_sanity(isprs_scores, name):
+    s = isprs_scores[name]
+    assert s["total_error_pct"] < 32.0  # samp11 (steep urban slopes) is the worst, at 29.4 %
+    assert s["kappa"] > 0.4
+    assert s["type_ii_pct"] < 25.0
