@@ -81,9 +81,27 @@ class GroundParams(_Stage):
 
     detector: Literal["ground"] = "ground"
     slope_threshold: float = Field(
-        45.0, gt=0.0, lt=90.0, description="Triangle slope in degrees above which it is a step edge."
+        45.0, gt=0.0, lt=90.0,
+        description="Triangle slope in degrees above which it is a step edge.",
     )
-    max_iterations: int = Field(50, ge=1, le=10000, description="Adjust-and-retest rounds at most.")
+    max_iterations: int = Field(
+        1000, ge=1, le=10000,
+        description="Adjust-and-retest rounds at most (one round peels one ring off an object).",
+    )
+    min_object_height: float = Field(
+        0.5, ge=0.0, le=100.0,
+        description="Metres: least rise of a step edge; points lowered by less are ground.",
+    )
+    low_outlier_depth: float = Field(
+        2.0, gt=0.0, le=1000.0,
+        description="Metres below the lower quartile of the 24 nearest neighbours that makes a "
+        "point a low outlier (object).",
+    )
+    max_object_size: float = Field(
+        20.0, ge=0.0, le=1000.0,
+        description="Metres: raised ground wider than this is terrain (morphological opening of "
+        "the lowest-point raster); 0 turns the terrace check off.",
+    )
 
 
 def _require_positive(value: float | str, name: str) -> None:
