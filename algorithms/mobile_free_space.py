@@ -10,10 +10,12 @@ This needs the scanner position of every beam. Mobile-mapping systems deliver it
 (time, x, y, z of a reference point) plus each scanner's lever arm; :func:`scanner_origins`
 turns those into one origin per point (heading from the trajectory's horizontal motion).
 
-Beams are marched through a uniform grid of the points (cell edge ``cell``); only points in the
-cells a beam crosses are tested against it, so the cost is the total beam length over the cell
-size plus the candidate tests. The march stops ``margin`` before the beam's own return: a beam
-grazing a road near its end is not evidence against the road.
+Beams are walked cell by cell (an exact 3D DDA) through a uniform grid in which every point is
+registered in each cell its ``radius``-ball touches; only points in the cells a beam crosses are
+tested against it, so the cost is the total beam length over the cell size plus the candidate
+tests, and the result equals the brute-force test of every beam against every point. The walk
+stops ``margin`` before the beam's own return: a beam grazing a road near its end is not
+evidence against the road.
 """
 
 from __future__ import annotations
@@ -77,10 +79,11 @@ def _headings(traj: np.ndarray) -> np.ndarray:
     return np.append(ang, ang[-1])
 
 
-def _grid(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, float, np.ndarray]:
-    """Origin (3,), cell edge and shape (3,) of a grid over the points (edge grown to fit)."""
-    lo = xyz.min(axis=0) - 1e-9
-    ext = xyz.max(axis=0) - lo
+def _grid(xyz: np.ndarray, cell: float, radius: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """Origin (3,), cell edge and shape (3,) of a grid holding every point's radius-ball (the
+    edge is doubled until the grid has at most MAX_CELLS cells)."""
+    lo = xyz.min(axis=0) - radius - 1e-6
+    ext = xyz.max(axis=0) + radius + 1e-6 - lo
     while True:
         shape = np.floor(ext / cell).astype(np.int64) + 1
         if int(np.prod(shape)) <= MAX_CELLS:
@@ -153,57 +156,113 @@ def ray_point_test(o, p, q, radius, margin):
     return e0 * e0 + e1 * e1 + e2 * e2 < radius * radius
 
 
+@njit(cache=True)
+def _clip(o, d, lo, hi, s_max):
+    """Parameter range [s0, s1] of the ray o + s d (s in [0, s_max]) inside the box [lo, hi]."""
+    s0 = 0.0
+    s1 = s_max
+    for a in range(3):
+        if d[a] == 0.0:
+            if o[a] < lo[a] or o[a] > hi[a]:
+                return 1.0, 0.0
+            continue
+        t1 = (lo[a] - o[a]) / d[a]
+        t2 = (hi[a] - o[a]) / d[a]
+        if t1 > t2:
+            t1, t2 = t2, t1
+        s0 = max(s0, t1)
+        s1 = min(s1, t2)
+    return s0, s1
+
+
+@njit(cache=True)
+def _beam_hits(i, o, p, xyz, lo, cell, shape, start, members, radius, margin, seen, counts):
+    """Walk the grid cells of beam i (exact 3D DDA) and count each point it saw through once."""
+    d = p - o
+    length = np.sqrt((d * d).sum())
+    stop = length - margin
+    if stop <= 0.0:
+        return
+    d = d / length
+    hi = lo + shape * cell
+    s0, s1 = _clip(o, d, lo, hi, stop)
+    if s0 >= s1:
+        return
+    c = np.empty(3, np.int64)
+    step = np.empty(3, np.int64)
+    t_max = np.empty(3)
+    t_delta = np.empty(3)
+    for a in range(3):
+        x = o[a] + s0 * d[a]
+        c[a] = min(shape[a] - 1, max(0, int(np.floor((x - lo[a]) / cell))))
+        if d[a] > 0.0:
+            step[a] = 1
+            t_max[a] = (lo[a] + (c[a] + 1) * cell - o[a]) / d[a]
+            t_delta[a] = cell / d[a]
+        elif d[a] < 0.0:
+            step[a] = -1
+            t_max[a] = (lo[a] + c[a] * cell - o[a]) / d[a]
+            t_delta[a] = -cell / d[a]
+        else:
+            step[a] = 0
+            t_max[a] = np.inf
+            t_delta[a] = np.inf
+    n_seen = 0
+    while True:
+        key = (c[0] * shape[1] + c[1]) * shape[2] + c[2]
+        for m in range(start[key], start[key + 1]):
+            j = members[m]
+            if j == i or not ray_point_test(o, p, xyz[j], radius, margin):
+                continue
+            dup = False
+            for q in range(n_seen):  # a point sits in up to 8 cells: count it once per beam
+                if seen[q] == j:
+                    dup = True
+                    break
+            if dup:
+                continue
+            if n_seen < seen.size:
+                seen[n_seen] = j
+                n_seen += 1
+            counts[j] += 1
+        a = 0
+        if t_max[1] < t_max[a]:
+            a = 1
+        if t_max[2] < t_max[a]:
+            a = 2
+        if t_max[a] > s1:
+            break
+        c[a] += step[a]
+        if c[a] < 0 or c[a] >= shape[a]:
+            break
+        t_max[a] += t_delta[a]
+
+
 @njit(cache=True, parallel=True)
 def _march(xyz, origin, lo, cell, shape, start, members, radius, margin, n_chunks):
-    """Per point, the number of beams that saw through it (chunked for thread-local counts)."""
+    """(n_chunks, n) per-chunk counts of the beams that saw through each point."""
     n = xyz.shape[0]
     counts = np.zeros((n_chunks, n), np.int32)
-    step = 0.5 * cell
     size = (n + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
+        seen = np.empty(4096, np.int64)
         for i in range(c * size, min(n, (c + 1) * size)):
-            o = origin[i]
-            p = xyz[i]
-            d = p - o
-            length = np.sqrt((d * d).sum())
-            stop = length - margin
-            if stop <= 0.0:
-                continue
-            d = d / length
-            last = -1
-            s = 0.0
-            while s < stop:
-                cx = int(np.floor((o[0] + s * d[0] - lo[0]) / cell))
-                cy = int(np.floor((o[1] + s * d[1] - lo[1]) / cell))
-                cz = int(np.floor((o[2] + s * d[2] - lo[2]) / cell))
-                s += step
-                if cx < 0 or cy < 0 or cz < 0 or cx >= shape[0] or cy >= shape[1]:
-                    continue
-                if cz >= shape[2]:
-                    continue
-                key = (cx * shape[1] + cy) * shape[2] + cz
-                if key == last:
-                    continue
-                last = key
-                for m in range(start[key], start[key + 1]):
-                    j = members[m]
-                    if j != i and ray_point_test(o, p, xyz[j], radius, margin):
-                        counts[c, j] += 1
+            _beam_hits(i, origin[i], xyz[i], xyz, lo, cell, shape, start, members, radius,
+                       margin, seen, counts[c])
     return counts
 
 
 def see_through_counts(
-    xyz: np.ndarray, origin: np.ndarray, *, radius: float = 0.02, margin: float = 0.3,
+    xyz: np.ndarray, origin: np.ndarray, *, radius: float = 0.006, margin: float = 0.3,
     cell: float = 0.1,
 ) -> np.ndarray:
     """(n,) number of beams o_i -> p_i that passed within ``radius`` of each point and ended more
-    than ``margin`` beyond it. A point may be counted twice by one beam where the beam's march
-    visits two cells that both hold it: the count is only compared with a small minimum.
+    than ``margin`` beyond it (each beam counts a point at most once).
     """
     centre = xyz.mean(axis=0)
     local = xyz - centre
     o = origin - centre
-    lo, cell, shape = _grid(local, cell)
+    lo, cell, shape = _grid(local, cell, radius)
     start, members = _cell_index(local, lo, cell, shape, radius)
     n_chunks = 8
     counts = _march(local, o, lo, cell, shape, start, members, radius, margin, n_chunks)
@@ -214,9 +273,9 @@ def detect_free_space(
     xyz: np.ndarray,
     origin: np.ndarray,
     *,
-    radius: float = 0.02,
+    radius: float = 0.006,
     margin: float = 0.3,
-    min_rays: int = 2,
+    min_rays: int = 1,
 ) -> DetectorResult:
     """Flag points that at least ``min_rays`` other beams saw through (module docstring).
 
