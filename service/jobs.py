@@ -142,12 +142,12 @@ class JobService:
 
         ``move``: the source is a fresh upload part (renamed into the job folder); otherwise it
         is a stored upload (hard-linked, so the upload can serve further jobs)."""
-        active = self.check_active_limit(user)
-        facts = las_facts_or_remove(source, name) if move else las_facts(source, name)
         try:
+            active = self.check_active_limit(user)
+            facts = las_facts(source, name)
             preflight(PipelineParams.model_validate(params), int(facts.get("point_format", 0)))
-        except Problem:
-            if move:
+        except BaseException:
+            if move:  # a refused upload is not kept
                 source.unlink(missing_ok=True)
             raise
         job_id = os.urandom(16).hex()
