@@ -1,0 +1,103 @@
+"""Dynamic-radius outlier removal (DROR, Charron, Phillips & Waslander 2018), the snow baseline.
+
+A spinning LiDAR's points thin out with range: two neighbours on one ring are about
+``range x angular_resolution`` apart. DROR therefore counts each point's neighbours inside a sphere
+whose radius grows with the point's range from the sensor,
+
+    radius_i = max(min_radius, multiplier x range_i x angular_resolution)
+
+and calls the point noise when fewer than ``k_min`` other points fall inside. Falling snow is
+sparse (one flake, one return), real surfaces are not. Issue 5 quotes multiplier 4, angular
+resolution 0.2 degrees and k_min 2 as the best setting on the WADS frames (F1 0.85).
+
+Not one of the paper's detectors (Leslar, Wang & Hu 2010 have no equation for it); it is the
+baseline the new detectors are compared against.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from algorithms.result import DetectorResult
+
+
+def _check_xyz(xyz: np.ndarray) -> np.ndarray:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz must have shape (n, 3), got {xyz.shape}")
+    if not np.all(np.isfinite(xyz)):
+        raise ValueError("xyz holds NaN or infinite coordinates")
+    return xyz
+
+
+def dynamic_radius(
+    xyz: np.ndarray,
+    origin: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
+    *,
+    multiplier: float = 4.0,
+    angular_resolution: float = 0.2,
+    min_radius: float = 0.04,
+) -> np.ndarray:
+    """Search radius per point: max(min_radius, multiplier x range x angular_resolution).
+
+    xyz : (n, 3) float64, metres, in the same frame as ``origin``.
+    origin : (3,) sensor position (the sensor frame's origin for a spinning sensor's frame).
+    angular_resolution : degrees (the sensor's horizontal step between two firings).
+    Returns (n,) float64 radii in metres.
+    """
+    if not multiplier > 0 or not angular_resolution > 0 or not min_radius >= 0:
+        raise ValueError("multiplier and angular_resolution must be > 0, min_radius >= 0")
+    rng = np.linalg.norm(xyz - np.asarray(origin, dtype=np.float64), axis=1)
+    return np.maximum(min_radius, multiplier * rng * np.deg2rad(angular_resolution))
+
+
+def neighbour_counts(xyz: np.ndarray, radius: np.ndarray, *, workers: int = 1) -> np.ndarray:
+    """Number of OTHER points within ``radius[i]`` (inclusive) of each point i.
+
+    xyz : (n, 3) float64; radius : (n,) float64 (one radius per query point).
+    Returns (n,) int64. A duplicate of a point counts as a neighbour.
+    """
+    if len(xyz) == 0:
+        return np.zeros(0, dtype=np.int64)
+    tree = cKDTree(xyz)
+    counts = tree.query_ball_point(xyz, radius, return_length=True, workers=workers)
+    return np.asarray(counts, dtype=np.int64) - 1  # the point itself is always inside
+
+
+def detect_dror(
+    xyz: np.ndarray,
+    *,
+    origin: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
+    multiplier: float = 4.0,
+    angular_resolution: float = 0.2,
+    min_radius: float = 0.04,
+    k_min: int = 2,
+) -> DetectorResult:
+    """DROR: flag the points with fewer than ``k_min`` neighbours in their dynamic radius.
+
+    xyz : (n, 3) float64 metres, in the frame of ``origin`` (the sensor position).
+    Returns a DetectorResult whose score is ``k_min - neighbours`` (the neighbours missing to
+    be kept; critical value 0: flagged when score > 0).
+
+    >>> pts = np.array([[10.0, 0, 0], [10.0, 0.01, 0], [10.0, 0.02, 0], [5.0, 5.0, 5.0]])
+    >>> detect_dror(pts).flagged.tolist()
+    [False, False, False, True]
+    """
+    xyz = _check_xyz(xyz)
+    if k_min < 1:
+        raise ValueError(f"k_min must be >= 1, got {k_min}")
+    radius = dynamic_radius(
+        xyz, origin, multiplier=multiplier, angular_resolution=angular_resolution,
+        min_radius=min_radius,
+    )
+    counts = neighbour_counts(xyz, radius)
+    score = (k_min - counts).astype(np.float64)
+    flagged = score > 0
+    info = {
+        "k_min": int(k_min), "multiplier": float(multiplier),
+        "angular_resolution": float(angular_resolution), "min_radius": float(min_radius),
+        "origin": [float(v) for v in np.asarray(origin, dtype=np.float64)],
+        "points_tested": int(len(xyz)), "points_flagged": int(flagged.sum()),
+    }
+    return DetectorResult(score=score, flagged=flagged, critical_value=0.0, info=info)
