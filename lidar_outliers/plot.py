@@ -242,8 +242,8 @@ def _histogram(ax, name: str, score: np.ndarray, crit: tuple[float | None, str],
         return
     s = score[tested]
     upper = float(np.quantile(s, 0.999))
-    if value is not None:
-        upper = max(upper, 2.0 * value)
+    if value is not None:  # keep the critical value readable: between 2x and 10x of it
+        upper = min(max(upper, 2.0 * value), 10.0 * value)
     bins = np.linspace(0.0 if s.min() >= 0 else float(s.min()), upper, 60)
     clipped = np.clip(s, bins[0], bins[-1])
     if truth is None:
