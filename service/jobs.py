@@ -236,7 +236,7 @@ class JobService:
             except ImportError:
                 raise Problem(404, "not-found", "previews are not available in this "
                               "installation") from None
-            tmp = png.with_name("preview.tmp.png")
+            tmp = png.with_name(f"preview.{os.urandom(6).hex()}.tmp.png")
             render_preview(path, tmp)
             os.replace(tmp, png)
         return png

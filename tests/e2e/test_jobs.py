@@ -84,6 +84,11 @@ def test_multipart_las_round_trip(stack: Stack, key: str, las_file, tmp_path: Pa
         assert stats.headers["content-type"].startswith("application/json")
         assert "temporal" in json.dumps(stats.json())
 
+        preview = client.get(results["preview"]["href"])
+        assert preview.status_code == 200, preview.text
+        assert preview.headers["content-type"] == "image/png"
+        assert preview.content.startswith(b"\x89PNG")
+
 
 def test_laz_in_laz_out_and_filters(stack: Stack, key: str, tmp_path: Path) -> None:
     path = tmp_path / "scan.laz"

@@ -133,6 +133,10 @@ def test_cancel_a_running_job(stack: Stack, key: str, slow_file: Path) -> None:
     job = submit(stack, key, slow_file, SLOW)
     running_attempt(stack, job, 1)
     with stack.client(key) as client:
+        # progress is reported while the job runs
+        seen = wait_for(lambda: (lambda d: d if 0 < d["progress"] < 100 else None)(
+            client.get(f"/jobs/{job}").json()), 120, "progress above 0 %", interval=0.05)
+        assert seen["status"] == "running" and seen["message"]
         answer = client.delete(f"/jobs/{job}")
         assert answer.status_code == 200
         assert answer.json()["status"] == "dismissed"
