@@ -22,6 +22,7 @@ from worker.lasio import Cloud
 from worker.params import (
     OUTLIER_DETECTOR_BITS,
     GroundParams,
+    HeightFieldParams,
     PatchParams,
     SectionParams,
     TemporalParams,
@@ -93,6 +94,15 @@ def _run_section(cloud: Cloud, params: SectionParams) -> DetectorResult:
     )
 
 
+def _run_height_field(cloud: Cloud, params: HeightFieldParams) -> DetectorResult:
+    from algorithms.mobile_height_field import detect_height_field
+
+    return detect_height_field(
+        cloud.xyz, k=params.k, sigma=params.sigma, threshold=params.threshold,
+        rms_weight=params.rms_weight, one_sided=params.one_sided,
+    )
+
+
 def _run_ground(cloud: Cloud, params: GroundParams) -> GroundResult:
     from algorithms.ground import classify_ground
 
@@ -127,6 +137,14 @@ DETECTORS: dict[str, DetectorSpec] = {
         kind="outlier",
         bit=OUTLIER_DETECTOR_BITS["section"],
         summary="One quadric per square XY section, refitted until no outlier remains.",
+    ),
+    "height_field": DetectorSpec(
+        name="height_field",
+        params_model=HeightFieldParams,
+        run=_run_height_field,
+        kind="outlier",
+        bit=OUTLIER_DETECTOR_BITS["height_field"],
+        summary="Leave-one-out local height fields with edge-aware half patches and robust sigma.",
     ),
     "ground": DetectorSpec(
         name="ground",

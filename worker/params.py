@@ -104,16 +104,48 @@ class GroundParams(_Stage):
     )
 
 
+class HeightFieldParams(_Stage):
+    """Mobile-mapping (b): leave-one-out height fields on k neighbours and four half patches."""
+
+    detector: Literal["height_field"] = "height_field"
+    k: int = Field(16, ge=8, le=200, description="Neighbours per patch, the point excluded.")
+    sigma: float | Auto = Field(
+        "auto",
+        description="Coordinate standard deviation in metres (> 0), or 'auto' for the MAD of the "
+        "cloud's full-patch studentised residuals (reported in the statistics).",
+    )
+    threshold: float = Field(
+        8.0, gt=0.0, le=1000.0, description="Score (in sigmas) above which a point is flagged."
+    )
+    rms_weight: float = Field(
+        0.5, ge=0.0, le=100.0,
+        description="Weight of a fit's own residual standard error: a patch of scattered points "
+        "cannot vouch for its members.",
+    )
+    one_sided: bool = Field(
+        True,
+        description="On ground-like patches (normal within 45 degrees of vertical) count only "
+        "points above the surface (early returns).",
+    )
+
+    @model_validator(mode="after")
+    def _positive_sigma(self) -> HeightFieldParams:
+        _require_positive(self.sigma, "sigma")
+        return self
+
+
 def _require_positive(value: float | str, name: str) -> None:
     if not isinstance(value, str) and not value > 0:
         raise ValueError(f"{name} must be > 0 or 'auto', got {value!r}")
 
 
 #: Outlier detectors, by name, with their bit in the ``outlier_flags`` extra dimension.
-OUTLIER_DETECTOR_BITS: dict[str, int] = {"temporal": 1, "patch": 2, "section": 4}
+OUTLIER_DETECTOR_BITS: dict[str, int] = {
+    "temporal": 1, "patch": 2, "section": 4, "height_field": 64,
+}
 
 Stage = Annotated[
-    TemporalParams | PatchParams | SectionParams | GroundParams,
+    TemporalParams | PatchParams | SectionParams | GroundParams | HeightFieldParams,
     Field(discriminator="detector"),
 ]
 
@@ -122,6 +154,7 @@ STAGE_MODELS: dict[str, type[_Stage]] = {
     "patch": PatchParams,
     "section": SectionParams,
     "ground": GroundParams,
+    "height_field": HeightFieldParams,
 }
 
 
