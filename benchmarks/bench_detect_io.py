@@ -9,7 +9,7 @@ shared):
 
 - ``laspy``: ``laspy.read(IN)`` then ``.write(OUT)`` in this process (the baseline);
 - ``detect (streaming)`` / ``detect (in memory)``: ``worker.pipeline.process_file`` in this
-  process (temporal only; the streaming path is the default for time-ordered files);
+  process (temporal only; files above ``STREAM_MIN_POINTS`` in time order stream by default);
 - ``lidar-outliers detect``: the installed command in a subprocess (adds interpreter start-up
   and imports), with its peak RSS.
 
@@ -90,7 +90,7 @@ def main() -> None:
             laspy.read(str(src)).write(str(tmp / f"laspy_out.{suffix}"))
 
         def streaming() -> None:
-            stats = process_file(src, tmp / f"s.{suffix}", params)
+            stats = process_file(src, tmp / f"s.{suffix}", params, streaming=True)
             assert stats["mode"] == "streaming", stats.get("streaming")
 
         def in_memory() -> None:

@@ -37,6 +37,8 @@ Progress = Callable[[float, str], None]
 #: Point formats 0-5 store the class in 5 bits.
 LEGACY_MAX_CLASS = 31
 GROUND_CLASS, OTHER_CLASS = 2, 1
+#: A temporal-only pipeline streams above this many points (in memory: ~40 bytes a point).
+STREAM_MIN_POINTS = 5_000_000
 #: Share of the progress bar given to reading, detecting and writing in :func:`process_file`.
 _READ, _DETECT = 0.25, 0.75
 
@@ -334,7 +336,7 @@ def process_file(
     progress: Progress | None = None,
     stats_path: str | os.PathLike[str] | None = None,
     chunk_points: int = lasio.DEFAULT_CHUNK_POINTS,
-    streaming: bool = True,
+    streaming: bool | None = None,
 ) -> dict[str, Any]:
     """Validate, read, run the pipeline, write the flagged cloud; return the statistics.
 
@@ -342,7 +344,9 @@ def process_file(
     reading, per stage and while writing; whatever it raises propagates unchanged (the service
     cancels jobs that way) and no output file is left behind. ``stats_path`` also receives the
     statistics as JSON (written atomically). A temporal-only pipeline on a file in time order
-    per scanner runs in one streaming pass (``streaming=False`` forces the in-memory path).
+    per scanner runs in one streaming pass when the file holds more than
+    ``STREAM_MIN_POINTS`` points (``streaming=None``), always (``True``) or never (``False``);
+    below that size the in-memory path is faster and its memory is bounded by the threshold.
     """
     t0 = time.perf_counter()
     if params is None:
@@ -360,6 +364,8 @@ def process_file(
     if laz is None and facts.point_format in lasio.LAZ_LOSSY_FORMATS:
         compress = False  # lazrs would change the waveform fields; keep the data, write LAS
     streaming_note = None
+    if streaming is None:
+        streaming = facts.points > STREAM_MIN_POINTS
     if streaming and _temporal_only(params) and facts.has_gps_time and facts.points > 0:
         stats, streaming_note = _stream_temporal(
             in_path, out_path, params, facts, compress, progress, chunk_points

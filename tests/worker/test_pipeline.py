@@ -185,7 +185,7 @@ def test_progress_is_reported_and_its_exception_propagates(tmp_path, spiky):
     for params, words in ((two_stages, ("reading", "temporal", "section", "writing")),
                           (streaming, ("temporal (streaming)",))):
         seen: list[tuple[float, str]] = []
-        process_file(src, tmp_path / "ok.las", params,
+        process_file(src, tmp_path / "ok.las", params, streaming=True,
                      progress=lambda f, m, seen=seen: seen.append((f, m)), chunk_points=500)
         fractions = [f for f, _ in seen]
         assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
@@ -204,7 +204,7 @@ def test_progress_is_reported_and_its_exception_propagates(tmp_path, spiky):
 
         out_dir = tmp_path / stop_at
         with pytest.raises(Cancelled):
-            process_file(src, out_dir / "out.las", params, progress=progress,
+            process_file(src, out_dir / "out.las", params, progress=progress, streaming=True,
                          stats_path=out_dir / "s.json", chunk_points=500)
         assert not out_dir.exists() or list(out_dir.iterdir()) == []
 
@@ -251,7 +251,7 @@ def test_temporal_only_pipeline_streams_and_matches_the_in_memory_run(tmp_path, 
         {"pipeline": [{"detector": "temporal", "sigma": 0.003, "max_gap": 0.01}],
          "reference_classes": [7], "noise_class": 18}
     )
-    stats = process_file(src, tmp_path / "out.las", params, chunk_points=700)
+    stats = process_file(src, tmp_path / "out.las", params, chunk_points=700, streaming=True)
     assert stats["mode"] == "streaming"
     out = laspy.read(tmp_path / "out.las")
     memory = run_pipeline(lasio.read_cloud(src), params)
@@ -266,7 +266,8 @@ def test_temporal_only_pipeline_streams_and_matches_the_in_memory_run(tmp_path, 
 def test_unordered_file_falls_back_to_memory(tmp_path, rng):
     src = _two_scanner_file(tmp_path, rng, "shuffled.las", shuffle=True)
     stats = process_file(src, tmp_path / "out.las",
-                         {"pipeline": [{"detector": "temporal", "sigma": 0.003}]}, chunk_points=700)
+                         {"pipeline": [{"detector": "temporal", "sigma": 0.003}]}, chunk_points=700,
+                         streaming=True)
     assert stats["mode"] == "in memory" and "not in time order" in stats["streaming"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.las", "shuffled.las"]
     assert np.asarray(laspy.read(tmp_path / "out.las").outlier_flags).sum() > 0
