@@ -179,7 +179,7 @@ class JobService:
             raise Problem(404, "no-such-job", f"no job {job_id!r} of yours")
         return job
 
-    def list(self, user: User, limit: int, offset: int) -> tuple[list[Job], int]:
+    def list_jobs(self, user: User, limit: int, offset: int) -> tuple[list[Job], int]:
         return self.store.list_jobs(user.id, limit, offset)
 
     def dismiss(self, user: User, job_id: str) -> Job:

@@ -28,12 +28,12 @@ def stage_models() -> dict[str, type[BaseModel]]:
         from worker.detectors import DETECTORS
     except ImportError:
         return dict(STAGE_MODELS)
-    models = dict(STAGE_MODELS)
+    models: dict[str, type[BaseModel]] = {}
     for name, spec in DETECTORS.items():
-        model = getattr(spec, "params", None) or getattr(spec, "params_model", None)
+        model = getattr(spec, "params_model", None)
         if isinstance(model, type) and issubclass(model, BaseModel):
             models[name] = model
-    return models
+    return models | {k: v for k, v in STAGE_MODELS.items() if k not in models}
 
 
 def process_ids() -> list[str]:

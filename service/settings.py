@@ -23,7 +23,8 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="", case_sensitive=False, extra="ignore")
 
     environment: Literal["dev", "prod"] = Field(
-        "dev", description="`prod` refuses to create the development key and hides tracebacks."
+        "dev", description="`prod`: no development key, no exception text in answers, "
+        "REDIS_URL and DATA_DIR must be set."
     )
     redis_url: str = Field(
         "redis://127.0.0.1:6379/0",
@@ -64,6 +65,11 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _resolve(self) -> Settings:
+        if self.environment == "prod":
+            missing = {"redis_url", "data_dir"} - self.model_fields_set
+            if missing:  # defaults meant for one developer's machine
+                names = ", ".join(sorted(m.upper() for m in missing))
+                raise ValueError(f"ENVIRONMENT=prod needs {names} set explicitly")
         self.data_dir = self.data_dir.expanduser().resolve()
         if self.visibility_timeout == 0:
             self.visibility_timeout = self.task_time_limit + 600

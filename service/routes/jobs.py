@@ -23,7 +23,7 @@ def list_jobs(
     offset: Annotated[int, Query(ge=0)] = 0,
 ) -> dict[str, Any]:
     """The caller's jobs, newest first."""
-    jobs, total = service.list(user, limit, offset)
+    jobs, total = service.list_jobs(user, limit, offset)
     links = [{"href": f"/jobs?limit={limit}&offset={offset}", "rel": "self",
               "type": "application/json"}]
     if offset + len(jobs) < total:

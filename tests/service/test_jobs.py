@@ -172,3 +172,21 @@ def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Pa
     monkeypatch.setenv("VISIBILITY_TIMEOUT", "10")
     with pytest.raises(ValueError, match="VISIBILITY_TIMEOUT"):
         Settings(task_time_limit=20)
+
+
+def test_prod_needs_explicit_redis_and_data_dir(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="DATA_DIR, REDIS_URL"):
+        Settings(environment="prod")
+    Settings(environment="prod", data_dir=tmp_path, redis_url="redis://r:6379/0")
+
+
+def test_storage_quota_bounds_uploads(store: Store, tmp_path: Path) -> None:
+    settings = Settings(data_dir=tmp_path / "data", max_stored_bytes_per_user=10_000,
+                        max_upload_bytes=8_000)
+    service = JobService(settings, store, enqueue=lambda job_id, p: None)
+    alice, _ = store.add_user("alice")
+    assert service.upload_limit(alice) == (8_000, False)
+    part = _part(tmp_path, settings)
+    upload = service.store_upload(alice, part, "up.las")
+    left, quota = service.upload_limit(alice)
+    assert quota and left == max(0, 10_000 - upload.bytes)
