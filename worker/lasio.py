@@ -650,7 +650,7 @@ def _is_compressed(header: laspy.LasHeader) -> bool:
 def result_dimensions(detectors: list[str]) -> list[tuple[str, type, str]]:
     """The extra dimensions of a result file: the flag bitmask and one score per detector."""
     dims: list[tuple[str, type, str]] = [
-        (FLAGS_DIMENSION, np.uint8, "1 temporal 2 patch 4 section")
+        (FLAGS_DIMENSION, np.uint8, "bit per outlier detector")
     ]
     dims += [(score_dimension(d), np.float32, f"{d} score") for d in detectors]
     return dims

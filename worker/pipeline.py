@@ -47,7 +47,7 @@ _READ, _DETECT = 0.25, 0.75
 class PipelineResult:
     """Outcome of a pipeline on n points.
 
-    flags : (n,) uint8, ``outlier_flags`` bitmask (1 temporal, 2 patch, 4 section).
+    flags : (n,) uint8, ``outlier_flags`` bitmask (``worker.params.OUTLIER_DETECTOR_BITS``).
     scores : name -> (n,) float32, per outlier detector that ran; NaN where untested.
     classification : (n,) uint8 with ``classify`` on, else None (classes left untouched).
     statistics : JSON-serialisable dict (see :func:`run_pipeline`).
@@ -296,8 +296,7 @@ def _overall(flags: np.ndarray, noise_truth: np.ndarray | None) -> dict[str, Any
         "points": int(flags.size),
         "points_flagged": int(np.count_nonzero(flagged)),
         "flagged_by_bit": {
-            name: int(np.count_nonzero(flags & bit))
-            for name, bit in (("temporal", 1), ("patch", 2), ("section", 4))
+            name: int(np.count_nonzero(flags & bit)) for name, bit in OUTLIER_DETECTOR_BITS.items()
         },
     }
     if noise_truth is not None:
@@ -494,7 +493,8 @@ def _stream_temporal(
     overall: dict[str, Any] = {
         "points": n,
         "points_flagged": counts.flagged,
-        "flagged_by_bit": {"temporal": counts.flagged, "patch": 0, "section": 0},
+        "flagged_by_bit": {name: counts.flagged if name == "temporal" else 0
+                           for name in OUTLIER_DETECTOR_BITS},
     }
     if noise_ref:
         confusion = counts.confusion()
