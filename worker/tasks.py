@@ -104,6 +104,8 @@ def execute_job(settings: Settings, store: Store, job_id: str) -> JobStatus | No
             laz=job.laz,
             progress=Progress(store, job_id),
         )
+        if isinstance(stats.get("input"), dict):  # the user's file name, not input.las
+            stats["input"]["name"] = job.facts.get("name", stats["input"].get("name"))
         _write_json(statistics_path(settings, job_id), stats)
     except CancelledError:
         shutil.rmtree(folder, ignore_errors=True)

@@ -75,6 +75,7 @@ def test_worker_run_writes_result_and_statistics(service, store, settings, tmp_p
     assert set(spikes) <= set(np.flatnonzero(np.asarray(las.outlier_flags)))
     stats = json.loads(tasks.statistics_path(settings, job.id).read_text())
     assert "temporal" in json.dumps(stats)
+    assert stats["input"]["name"] == "scan.las"
     # a late re-delivery of a finished job does nothing
     assert tasks.execute_job(settings, store, job.id) is None
 
