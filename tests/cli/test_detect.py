@@ -121,12 +121,18 @@ def test_bad_input_files_exit_1_with_one_line(capsys, tmp_path, cloud_file):
     truncated = tmp_path / "cut.las"
     truncated.write_bytes(cloud_file.read_bytes()[:5000])
     no_time = write_las(tmp_path / "pf0.las", np.zeros((10, 3)), point_format=0)
+    laz = write_las(tmp_path / "whole.laz", np.random.default_rng(3).normal(size=(3000, 3)),
+                    gps_time=np.arange(3000.0))
+    cut_laz = tmp_path / "cut.laz"
+    cut_laz.write_bytes(laz.read_bytes()[: laz.stat().st_size // 2])
+    laz.unlink()
     bad_params = tmp_path / "bad.json"
     bad_params.write_text('{"pipeline": [{"detector": "temporal", "n_1": 3}]}')
     cases = [
         ([str(text)], 1, "notes.las is not a LAS/LAZ file"),
         ([str(truncated)], 1, "cut.las is truncated: header says 2000 points"),
         ([str(tmp_path / "missing.las")], 1, "cannot read missing.las"),
+        ([str(cut_laz), "--detector", "temporal"], 1, "cut.laz: cannot read the points"),
         ([str(no_time), "--detector", "temporal"], 1, "the temporal detector needs gps_time"),
         ([str(cloud_file), "--params", str(bad_params)], 2, "pipeline[0].n_1: unknown parameter"),
         ([str(cloud_file), "--params", str(tmp_path / "nope.json")], 2, "cannot read --params"),
