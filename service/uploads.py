@@ -49,6 +49,17 @@ async def _drain(stream: AsyncIterator[bytes]) -> None:
             return
 
 
+def refuse_declared_size(content_length: str | None, limit: int, quota: bool,
+                         overhead: int) -> None:
+    """413 at once when the declared body cannot fit, before a byte of it is read."""
+    if content_length and content_length.isdigit() and int(content_length) > limit + overhead:
+        raise too_large(limit, quota)
+
+
+#: Bytes of a multipart body besides the file: the inputs part and the part headers.
+MULTIPART_OVERHEAD = MAX_FIELD_BYTES + 64 * 1024
+
+
 def part_path(directory: Path) -> Path:
     directory.mkdir(parents=True, exist_ok=True)
     return directory / f"{uuid.uuid4().hex}.part"

@@ -14,7 +14,7 @@ from service.deps import ServiceDep, UserDep
 from service.jobs import status_document
 from service.problems import Problem
 from service.processes import describe, inputs_model, process_ids, summary
-from service.uploads import receive_multipart
+from service.uploads import MULTIPART_OVERHEAD, receive_multipart, refuse_declared_size
 
 router = APIRouter(tags=["processes"])
 
@@ -81,6 +81,8 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
     content_type = request.headers.get("content-type", "")
     if content_type.startswith("multipart/form-data"):
         limit, quota = await run_in_threadpool(service.upload_limit, user)
+        refuse_declared_size(request.headers.get("content-length"), limit, quota,
+                             MULTIPART_OVERHEAD)
         received = await receive_multipart(request.stream(), content_type,
                                            service.incoming_dir, limit, quota)
         assert received.path is not None

@@ -10,7 +10,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
 from service.deps import ServiceDep, UserDep
-from service.uploads import receive_raw
+from service.uploads import receive_raw, refuse_declared_size
 
 router = APIRouter(tags=["uploads"])
 
@@ -32,6 +32,7 @@ async def upload(
 ) -> JSONResponse:
     """Store a LAS/LAZ file sent as the raw body (``curl --data-binary @cloud.las``)."""
     limit, quota = await run_in_threadpool(service.upload_limit, user)
+    refuse_declared_size(request.headers.get("content-length"), limit, quota, 0)
     received = await receive_raw(request.stream(), service.incoming_dir, limit, quota,
                                  os.path.basename(name) or "cloud")
     assert received.path is not None

@@ -124,6 +124,15 @@ def test_too_large_is_413_while_streaming(stack: Stack, keys: dict, las_bytes: b
         assert list((stack.data_dir / "uploads" / "incoming").glob("*")) == []
 
 
+def test_declared_size_over_the_limit_is_413_before_reading(stack: Stack, keys: dict) -> None:
+    huge = b"\0" * (LIMIT + 2 * 1024**2)
+    with stack.client(keys["carol"]) as client:
+        assert_problem(submit(client, huge), 413, "file-too-large")
+        assert_problem(client.post("/uploads", content=huge), 413, "file-too-large")
+        # the connection was closed with the answer; the service still answers
+        assert client.get("/jobs").status_code == 200
+
+
 @pytest.mark.parametrize(
     ("process", "inputs", "parameter"),
     [
