@@ -69,21 +69,15 @@ def validation_message(exc: ValidationError, *, option_style: bool = False) -> s
     """
     parts: list[str] = []
     seen: set[tuple[str, ...]] = set()
-
-    def name_seen(_parts: list[str], loc: list[str]) -> bool:
-        key = tuple(loc)
-        if key in seen:
-            return True
-        seen.add(key)
-        return False
-
     for err in exc.errors():
         loc = [str(x) for x in err.get("loc", ())]
-        # A union reports one error per member, tagged with the member type: keep the field.
+        # A union reports one error per member, tagged with the member type: keep the field,
+        # once.
         while loc and (loc[-1] in _TYPE_TAGS or "[" in loc[-1]):
             loc.pop()
-        if name_seen(parts, loc):
+        if tuple(loc) in seen:
             continue
+        seen.add(tuple(loc))
         # The discriminated union inserts the detector name after the index: drop it.
         cleaned: list[str] = []
         for i, item in enumerate(loc):
