@@ -19,7 +19,7 @@ from service.processes import CLOUD_INPUT, preflight, resolve_inputs
 from service.settings import Settings
 from service.store import ACTIVE, FINAL, Job, JobStatus, Store, Upload, User
 from worker import tasks
-from worker.errors import LasFormatError, LidarOutliersError
+from worker.errors import LidarOutliersError
 from worker.params import PipelineParams
 
 log = logging.getLogger(__name__)
@@ -42,10 +42,11 @@ def las_facts(path: Path, name: str) -> dict[str, Any]:
 
     try:
         facts = inspect_las(path)
-    except LasFormatError as exc:
-        raise Problem(415, "unsupported-media-type", f"{name}: {exc}") from None
-    except LidarOutliersError as exc:
-        raise Problem(415, "unsupported-media-type", f"{name}: {exc}") from None
+    except LidarOutliersError as exc:  # LasFormatError and kin: one line about the file
+        message = str(exc).replace(path.name, name)
+        if name not in message:
+            message = f"{name}: {message}"
+        raise Problem(415, "unsupported-media-type", message) from None
     if dataclasses.is_dataclass(facts):
         data = dataclasses.asdict(facts)
     elif hasattr(facts, "model_dump"):
