@@ -235,3 +235,18 @@ def test_restart_of_the_api_keeps_jobs_and_keys(stack: Stack, keys: dict) -> Non
     with stack.client(keys["alice"]) as client:
         after = client.get("/jobs").json()
     assert after == before
+
+
+def test_jobs_queued_without_a_worker_run_when_one_starts(
+    stack: Stack, keys: dict, compiled_detectors: None
+) -> None:
+    from tests.e2e.stack import wait_job
+
+    with stack.client(keys["bob"]) as client:
+        queued = [j["jobID"] for j in client.get("/jobs").json()["jobs"]
+                  if j["status"] == "accepted"]
+        assert queued
+        stack.start_worker()
+        for job in queued:
+            done = wait_job(client, job, ("successful", "failed"))
+            assert done["status"] == "successful", done["message"]
