@@ -93,10 +93,10 @@ def execute_job(settings: Settings, store: Store, job_id: str) -> JobStatus | No
                                worker_pid=os.getpid())
     if started is None:
         return None
-    from worker.pipeline import process_file  # heavy import (numba) only inside the worker
-
-    params = PipelineParams.model_validate(job.inputs)
     try:
+        from worker.pipeline import process_file  # heavy import (numba) only in the worker
+
+        params = PipelineParams.model_validate(job.inputs)
         stats = process_file(
             input_path(settings, job_id, job.laz),
             result_path(settings, job_id, job.laz),
