@@ -368,7 +368,9 @@ def _fit_one(
     The fixed-point iteration a <- a + da(a) converges linearly. With ``accelerate`` every pair
     of steps is extrapolated by SQUAREM (squared polynomial extrapolation); the fixed point, the
     stopping rule (a plain step with ||da|| < tol) and the reported quantities (those of that last
-    plain step) are unchanged, only fewer steps are needed. ``iterations`` counts adjustments.
+    plain step) are unchanged, only fewer steps are needed. An extrapolation whose next step is
+    longer than the plain step before it is rejected (back to the plain iterate).
+    ``iterations`` counts adjustments.
     """
     n = xyz.shape[0]
     n_act = 0
@@ -388,6 +390,7 @@ def _fit_one(
     da = np.zeros(N_PARAMS)
     da0 = np.zeros(N_PARAMS)
     a_base = np.empty(N_PARAMS)
+    a_plain = np.empty(N_PARAMS)
     w = np.empty(n)
     p_w = np.empty(n)
     acc = np.empty(_N_MONO)
@@ -395,6 +398,8 @@ def _fit_one(
     iterations = 0
     converged = False
     first_of_pair = True
+    check_extrapolation = False
+    last_plain_step = math.inf
     while iterations < max_iter:
         iterations += 1
         if not _adjust(xyz, mono, active, var, a, m, m_last, rhs, w, p_w, acc):
@@ -403,16 +408,27 @@ def _fit_one(
         for q in range(N_PARAMS):
             da[q] = rhs[q, 0]
             step += da[q] * da[q]
+        step = math.sqrt(step)
+        if check_extrapolation:
+            check_extrapolation = False
+            if step > last_plain_step and step >= tol:
+                # The extrapolated point is worse than the plain iterate it came from: go back.
+                a[:] = a_plain
+                first_of_pair = True
+                continue
         if first_of_pair:
             a_base[:] = a
             da0[:] = da
         for q in range(N_PARAMS):
             a[q] += da[q]
-        if math.sqrt(step) < tol:
+        if step < tol:
             converged = True
             break
         if accelerate and not first_of_pair:
+            a_plain[:] = a
+            last_plain_step = step
             _squarem(a_base, da0, da, a)
+            check_extrapolation = True
         first_of_pair = not first_of_pair
 
     # Residuals (eq. 29) and their cofactors from the last adjustment solved.
