@@ -131,6 +131,11 @@ def execute_job(settings: Settings, store: Store, job_id: str) -> JobStatus | No
 
 
 def _fail(store: Store, job_id: str, folder: Path, message: str) -> JobStatus:
+    if store.status(job_id) is JobStatus.dismissed:
+        # the error came from the dismissal itself (e.g. the API removed the folder)
+        shutil.rmtree(folder, ignore_errors=True)
+        store.annotate(job_id, "dismissed by the user; the worker stopped the running job")
+        return JobStatus.dismissed
     for name in ("result.las", "result.laz", "statistics.json"):
         (folder / name).unlink(missing_ok=True)
     store.transition(job_id, JobStatus.failed, message,
