@@ -36,8 +36,9 @@ The abstract leaves several things open; this implementation decides them as fol
   (close pairs of points from overlapping strips make steep but tiny steps).
 * **Low outliers** (multi-path returns below the ground) would otherwise make all their
   neighbours "higher" and flood the terrain with object labels. Before the iteration a point more
-  than ``low_outlier_depth`` below the lower quartile of the z of its 24 nearest XY neighbours is
-  a low outlier: its elevation in the TIN is raised to that quartile and it is labelled object.
+  than ``low_outlier_depth`` below the lower quartile of the z of its about 24 neighbours (the
+  3 x 3 block of grid cells of 1.6 point spacings around it) is a low outlier: its elevation in
+  the TIN is raised to that quartile and it is labelled object.
 * **Small adjustments.** A point lowered by less than ``min_object_height`` metres was a
   terrain point on a rough or steep slope, not an object: ground in the end.
 * **Terraces.** The iteration cannot tell a building from an upper terrace or an embankment top:
@@ -69,7 +70,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 from scipy.ndimage import distance_transform_edt, grey_opening
-from scipy.spatial import Delaunay, cKDTree
+from scipy.spatial import Delaunay
 
 from worker.errors import ParameterError
 
@@ -106,9 +107,9 @@ def classify_ground(
     *,
     slope_threshold: float = 45.0,
     max_iterations: int = 1000,
-    min_object_height: float = 0.5,
+    min_object_height: float = 1.0,
     low_outlier_depth: float = 2.0,
-    max_object_size: float = 20.0,
+    max_object_size: float = 25.0,
 ) -> GroundResult:
     """Separate terrain from object points by iterative elimination of TIN step edges.
 
@@ -129,8 +130,8 @@ def classify_ground(
     min_object_height : float
         Metres (>= 0): the least rise of a step edge, and points lowered by less are terrain.
     low_outlier_depth : float
-        Metres (> 0): a point this far below the lower quartile of its 24 nearest neighbours is a
-        low outlier.
+        Metres (> 0): a point this far below the lower quartile of its ~24 neighbours is a low
+        outlier.
     max_object_size : float
         Metres (>= 0, 0 disables step 6): width of the opening window; raised ground wider than
         this is terrain, objects wider than this can be missed.
@@ -160,9 +161,9 @@ def classify_ground(
         return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
     tri = unique_idx[tri]  # back to indices into all points
 
-    z_adj = z.copy()
     low, low_ref = find_low_outliers(xy, z, low_outlier_depth)  # step 3
-    z_adj[low] = low_ref[low]
+    z_raised = np.where(low, low_ref, z)  # the elevations the TIN iteration starts from
+    z_adj = z_raised.copy()
 
     tan_thr = math.tan(math.radians(slope_threshold))
     inv, valid = gradient_operators(xy, tri)
@@ -173,7 +174,7 @@ def classify_ground(
     small = adjusted & (z - z_adj < min_object_height)  # step 5
     terrace = np.zeros(n, bool)
     if max_object_size > 0:  # step 6
-        opened, grade = opened_minimum_surface(xy, z_adj * low + z * ~low, max_object_size)
+        opened, grade = opened_minimum_surface(xy, z_raised, max_object_size)
         terrace = adjusted & ~small & (z - opened < min_object_height + SLOPE_TOLERANCE * grade)
     is_ground = ~low & (~adjusted | small | terrace)
     z_adj[is_ground] = z[is_ground]
@@ -602,23 +603,59 @@ def _resolve_duplicates(
 
 #: Tolerance growth with the terrain grade in step 6 (metres per unit of tan(slope)); SMRF's 1.2.
 SLOPE_TOLERANCE = 1.2
-LOW_NEIGHBOURS = 24
 LOW_QUANTILE = 0.25
 
 
 def _low_reference(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Per point the lower quartile of the z of its LOW_NEIGHBOURS nearest XY neighbours, (n,)."""
-    k = min(LOW_NEIGHBOURS + 1, xy.shape[0])
-    _, idx = cKDTree(xy).query(xy, k=k, workers=-1)
-    zn = z[idx[:, 1:]]
-    kth = int(LOW_QUANTILE * (zn.shape[1] - 1))  # order statistic: no interpolation needed
-    return np.partition(zn, kth, axis=1)[:, kth]
+    """Per point the lower quartile of the z in the 3 x 3 block of grid cells around it, (n,).
+
+    Cells are 1.6 mean point spacings wide, so a block holds about 24 points: a cheap
+    stand-in for the k nearest neighbours (a k-d tree query costs more than the whole TIN).
+    """
+    n = z.shape[0]
+    lo = xy.min(axis=0)
+    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
+    cell = max(1.6 * math.sqrt(ext[0] * ext[1] / n), 1e-6)
+    shape = (ext / cell).astype(np.int64) + 1
+    ij = ((xy - lo) / cell).astype(np.int64)
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    order = np.argsort(flat, kind="stable")
+    ptr = np.searchsorted(flat[order], np.arange(shape[0] * shape[1] + 1))
+    ref_cell = _block_quartiles(z[order], ptr, int(shape[0]), int(shape[1]), LOW_QUANTILE)
+    return ref_cell[flat]
+
+
+@njit(cache=True)
+def _block_quartiles(
+    z_sorted: np.ndarray, ptr: np.ndarray, nx: int, ny: int, q: float
+) -> np.ndarray:
+    """For each cell the q-quantile (lower order statistic) of z over its 3 x 3 block."""
+    out = np.full(nx * ny, np.nan)
+    buf = np.empty(z_sorted.shape[0])
+    for i in range(nx):
+        for j in range(ny):
+            c = i * ny + j
+            if ptr[c + 1] == ptr[c]:
+                continue
+            m = 0
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    a, b = i + di, j + dj
+                    if a < 0 or b < 0 or a >= nx or b >= ny:
+                        continue
+                    cc = a * ny + b
+                    for p in range(ptr[cc], ptr[cc + 1]):
+                        buf[m] = z_sorted[p]
+                        m += 1
+            vals = np.sort(buf[:m])
+            out[c] = vals[int(q * (m - 1))]
+    return out
 
 
 def find_low_outliers(
     xy: np.ndarray, z: np.ndarray, depth: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Points more than ``depth`` metres below the lower quartile of their 24 nearest neighbours.
+    """Points more than ``depth`` metres below the lower quartile of their ~24 neighbours.
 
     Multi-path returns lie well below the terrain, alone or in small clusters; a point next to a
     building still has terrain neighbours in its lower quartile, so it is not caught. Returns the
