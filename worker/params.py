@@ -89,16 +89,16 @@ class GroundParams(_Stage):
         description="Adjust-and-retest rounds at most (one round peels one ring off an object).",
     )
     min_object_height: float = Field(
-        0.5, ge=0.0, le=100.0,
+        1.0, ge=0.0, le=100.0,
         description="Metres: least rise of a step edge; points lowered by less are ground.",
     )
     low_outlier_depth: float = Field(
         2.0, gt=0.0, le=1000.0,
-        description="Metres below the lower quartile of the 24 nearest neighbours that makes a "
+        description="Metres below the lower quartile of its ~24 neighbours that makes a "
         "point a low outlier (object).",
     )
     max_object_size: float = Field(
-        20.0, ge=0.0, le=1000.0,
+        25.0, ge=0.0, le=1000.0,
         description="Metres: raised ground wider than this is terrain (morphological opening of "
         "the lowest-point raster); 0 turns the terrace check off.",
     )
@@ -108,14 +108,14 @@ class HeightFieldParams(_Stage):
     """Mobile-mapping (b): leave-one-out height fields on k neighbours and four half patches."""
 
     detector: Literal["height_field"] = "height_field"
-    k: int = Field(16, ge=8, le=200, description="Neighbours per patch, the point excluded.")
+    k: int = Field(24, ge=8, le=200, description="Neighbours per patch, the point excluded.")
     sigma: float | Auto = Field(
         "auto",
         description="Coordinate standard deviation in metres (> 0), or 'auto' for the MAD of the "
         "cloud's full-patch studentised residuals (reported in the statistics).",
     )
     threshold: float = Field(
-        8.0, gt=0.0, le=1000.0, description="Score (in sigmas) above which a point is flagged."
+        9.0, gt=0.0, le=1000.0, description="Score (in sigmas) above which a point is flagged."
     )
     rms_weight: float = Field(
         0.5, ge=0.0, le=100.0,
@@ -134,6 +134,69 @@ class HeightFieldParams(_Stage):
         return self
 
 
+class DrorParams(_Stage):
+    """Baseline: dynamic-radius outlier removal (Charron et al. 2018) for spinning sensors."""
+
+    detector: Literal["dror"] = "dror"
+    multiplier: float = Field(4.0, gt=0.0, le=100.0, description="Radius = multiplier x range x "
+                              "angular_resolution (at least min_radius).")
+    angular_resolution: float = Field(
+        0.2, gt=0.0, le=10.0, description="Sensor's horizontal angular step in degrees."
+    )
+    min_radius: float = Field(0.04, ge=0.0, le=100.0, description="Least search radius, metres.")
+    k_min: int = Field(
+        2, ge=1, le=1000, description="Fewer other points than this in the sphere: noise."
+    )
+    origin: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="Sensor position in the file's coordinates (0, 0, 0 for a cloud stored in "
+        "the sensor frame, as spinning-sensor frames are).",
+    )
+
+
+class SnowParams(_Stage):
+    """Spinning sensors: falling snow = dark (low intensity) AND sparse in a dynamic radius."""
+
+    detector: Literal["snow"] = "snow"
+    multiplier: float = Field(4.0, gt=0.0, le=100.0, description="Radius = multiplier x range x "
+                              "angular_resolution (at least min_radius).")
+    angular_resolution: float = Field(
+        0.2, gt=0.0, le=10.0, description="Sensor's horizontal angular step in degrees."
+    )
+    min_radius: float = Field(0.04, ge=0.0, le=100.0, description="Least search radius, metres.")
+    k_min: int = Field(
+        4, ge=1, le=1000, description="Fewer other points than this in the sphere: snow."
+    )
+    max_intensity: float = Field(
+        0.0, ge=0.0, le=65535.0, description="Points with intensity at most this are candidates."
+    )
+    origin: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="Sensor position in the file's coordinates (0, 0, 0 for the sensor frame).",
+    )
+
+
+class DetachedParams(_Stage):
+    """Airborne: small clusters lying under or over the local surface's height envelope."""
+
+    detector: Literal["detached"] = "detached"
+    link: float = Field(
+        3.0, gt=0.0, le=1000.0, description="Metres: points closer than this form one cluster."
+    )
+    max_cluster: int = Field(
+        10, ge=1, le=1000, description="Clusters of at most this many points are tested."
+    )
+    k_surface: int = Field(
+        128, ge=3, le=2000, description="Surface points (nearest in XY) for the local plane."
+    )
+    below: float = Field(
+        1.0, gt=0.0, le=1000.0, description="Metres under the lowest surface residual: outlier."
+    )
+    above: float = Field(
+        2.0, gt=0.0, le=1000.0, description="Metres over the highest surface residual: outlier."
+    )
+
+
 def _require_positive(value: float | str, name: str) -> None:
     if not isinstance(value, str) and not value > 0:
         raise ValueError(f"{name} must be > 0 or 'auto', got {value!r}")
@@ -142,10 +205,12 @@ def _require_positive(value: float | str, name: str) -> None:
 #: Outlier detectors, by name, with their bit in the ``outlier_flags`` extra dimension.
 OUTLIER_DETECTOR_BITS: dict[str, int] = {
     "temporal": 1, "patch": 2, "section": 4, "height_field": 64,
+    "dror": 8, "snow": 16, "detached": 32,
 }
 
 Stage = Annotated[
-    TemporalParams | PatchParams | SectionParams | GroundParams | HeightFieldParams,
+    TemporalParams | PatchParams | SectionParams | GroundParams | HeightFieldParams
+    | DrorParams | SnowParams | DetachedParams,
     Field(discriminator="detector"),
 ]
 
@@ -155,6 +220,9 @@ STAGE_MODELS: dict[str, type[_Stage]] = {
     "section": SectionParams,
     "ground": GroundParams,
     "height_field": HeightFieldParams,
+    "dror": DrorParams,
+    "snow": SnowParams,
+    "detached": DetachedParams,
 }
 
 
