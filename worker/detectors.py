@@ -21,10 +21,13 @@ from worker.errors import MissingDimensionError
 from worker.lasio import Cloud
 from worker.params import (
     OUTLIER_DETECTOR_BITS,
+    DetachedParams,
+    DrorParams,
     GroundParams,
     HeightFieldParams,
     PatchParams,
     SectionParams,
+    SnowParams,
     TemporalParams,
 )
 
@@ -112,6 +115,44 @@ def _run_ground(cloud: Cloud, params: GroundParams) -> GroundResult:
     return GroundResult(is_ground=np.asarray(out.is_ground, dtype=bool), info=dict(out.info))
 
 
+def _sensor_origin(cloud: Cloud, origin: tuple[float, float, float]) -> np.ndarray:
+    """The sensor position (file coordinates) in the cloud's local frame (xyz + origin = file)."""
+    return np.asarray(origin, dtype=np.float64) - np.asarray(cloud.origin, dtype=np.float64)
+
+
+def _run_dror(cloud: Cloud, params: DrorParams) -> DetectorResult:
+    from algorithms.dror import detect_dror
+
+    return detect_dror(
+        cloud.xyz, origin=_sensor_origin(cloud, params.origin), multiplier=params.multiplier,
+        angular_resolution=params.angular_resolution, min_radius=params.min_radius,
+        k_min=params.k_min,
+    )
+
+
+def _run_snow(cloud: Cloud, params: SnowParams) -> DetectorResult:
+    from algorithms.snow import detect_snow
+
+    intensity = getattr(cloud, "intensity", None)
+    if intensity is None:
+        raise MissingDimensionError("the snow detector needs the points' intensity, which was "
+                                    "not read from this file")
+    return detect_snow(
+        cloud.xyz, intensity, origin=_sensor_origin(cloud, params.origin),
+        multiplier=params.multiplier, angular_resolution=params.angular_resolution,
+        min_radius=params.min_radius, k_min=params.k_min, max_intensity=params.max_intensity,
+    )
+
+
+def _run_detached(cloud: Cloud, params: DetachedParams) -> DetectorResult:
+    from algorithms.detached import detect_detached
+
+    return detect_detached(
+        cloud.xyz, link=params.link, max_cluster=params.max_cluster,
+        k_surface=params.k_surface, below=params.below, above=params.above,
+    )
+
+
 DETECTORS: dict[str, DetectorSpec] = {
     "temporal": DetectorSpec(
         name="temporal",
@@ -153,6 +194,31 @@ DETECTORS: dict[str, DetectorSpec] = {
         kind="ground",
         bit=None,
         summary="Iterative TIN ground filter: class 2 (ground) or 1 for unflagged points.",
+    ),
+    "dror": DetectorSpec(
+        name="dror",
+        params_model=DrorParams,
+        run=_run_dror,
+        kind="outlier",
+        bit=OUTLIER_DETECTOR_BITS["dror"],
+        summary="Baseline (Charron et al. 2018): too few neighbours in a range-scaled sphere.",
+    ),
+    "snow": DetectorSpec(
+        name="snow",
+        params_model=SnowParams,
+        run=_run_snow,
+        kind="outlier",
+        bit=OUTLIER_DETECTOR_BITS["snow"],
+        summary="Spinning sensors: dark points with too few neighbours in a range-scaled sphere.",
+        needs=("intensity",),
+    ),
+    "detached": DetectorSpec(
+        name="detached",
+        params_model=DetachedParams,
+        run=_run_detached,
+        kind="outlier",
+        bit=OUTLIER_DETECTOR_BITS["detached"],
+        summary="Airborne: small clusters under or over the local surface's height envelope.",
     ),
 }
 
