@@ -12,15 +12,18 @@ false alarms because one smooth surface cannot follow an edge. Here, for every p
    the neighbours, and p's externally studentised residual is
    ``r / (sigma * sqrt(1 + x_p^T (X^T X)^-1 x_p))`` with x_p = (1, u_p, v_p): the exact
    standard deviation of a new observation's deviation from a least-squares prediction;
-3. the same fit is repeated on the four half patches u > 0, u < 0, v > 0, v < 0 (each with at
-   least ``MIN_HALF_POINTS`` neighbours): a point on a curb, a raised manhole lid or a car's
-   edge lies on the surface of at least one side, an outlier on none;
+3. where the full patch is not one surface (its residual standard error above ``HALF_GATE``
+   sigmas: an edge, a step), the same fit is repeated on the four half patches u > 0, u < 0,
+   v > 0, v < 0 (each with at least ``MIN_HALF_POINTS`` neighbours): a point on a curb, a raised
+   manhole lid or a car's edge lies on the surface of at least one side, an outlier on none;
+   a fit whose leverage exceeds ``MAX_LEVERAGE`` (p far outside nearly collinear neighbours)
+   cannot vouch for p;
 4. a fit only vouches for p as far as it is itself a surface: each fit's term is
    ``max(|studentised residual|, rms_weight * rms / sigma)``, with ``rms`` its own residual
    standard error, so a "surface" made of scattered droplets cannot explain its members;
    on ground-like fits (upward normal within ~45 degrees of vertical, ``one_sided``) only
    residuals above the surface count: early returns lie between the scanner and the ground;
-5. the score is the smallest term over the five fits, in units of one ``sigma`` for the whole
+5. the score is the smallest term over the usable fits, in units of one ``sigma`` for the whole
    cloud (``"auto"``: the MAD of all full-patch studentised residuals, so no error is guessed).
 
 A point is flagged when its score exceeds ``threshold``. The kernel is numba, parallel over points;
@@ -42,6 +45,14 @@ MIN_HALF_POINTS = 6
 
 #: Upward-normal z above which a fit is ground-like for the one-sided test (45 degrees).
 ONE_SIDED_NZ = 0.7
+
+#: Leverage x_p^T (X^T X)^-1 x_p above which a fit cannot vouch for p (extrapolation far
+#: outside its points, e.g. neighbours all on one scan line).
+MAX_LEVERAGE = 10.0
+
+#: A full patch whose residual standard error is at most this many sigmas is one surface: its
+#: half patches are not consulted (they would only add extrapolation noise).
+HALF_GATE = 2.0
 
 #: Points per kNN batch (memory: batch x k x 8 bytes of indices).
 KNN_BATCH = 262_144
@@ -200,33 +211,45 @@ def all_terms(xyz: np.ndarray, nbr: np.ndarray) -> np.ndarray:
     return terms
 
 
-@njit(cache=True, parallel=True)
-def scores_from_terms(terms: np.ndarray, sigma: float, rms_weight: float,
-                      one_sided_nz: float) -> np.ndarray:
-    """Score (n,) = min over fits of max(|r| / (sigma sqrt(1 + h)), rms_weight rms / sigma).
+@njit(cache=True)
+def _fit_term(terms_f: np.ndarray, sigma: float, rms_weight: float, one_sided_nz: float,
+              max_leverage: float) -> float:
+    """One fit's term max(|r| / (sigma sqrt(1 + h)), rms_weight rms / sigma); NaN if unusable.
 
-    For fits whose upward normal has z >= one_sided_nz (ground-like surfaces), a residual below
-    the surface counts as 0: early returns (droplets, dust, multi-path) lie in front of a surface,
-    i.e. above the ground for a scanner on a vehicle roof. NaN where no fit exists.
+    A fit is unusable when singular or when p lies so far outside its points (leverage above
+    max_leverage: nearly collinear neighbours along one scan line) that it cannot vouch for p.
+    On ground-like fits (upward normal z >= one_sided_nz) a residual below the surface is 0.
+    """
+    r = terms_f[0]
+    if np.isnan(r) or terms_f[1] > max_leverage:
+        return np.nan
+    if r < 0.0 and terms_f[3] >= one_sided_nz:
+        r = 0.0
+    t = abs(r) / (sigma * np.sqrt(1.0 + terms_f[1]))
+    g = rms_weight * terms_f[2] / sigma
+    return g if g > t else t
+
+
+@njit(cache=True, parallel=True)
+def scores_from_terms(terms: np.ndarray, sigma: float, rms_weight: float, one_sided_nz: float,
+                      half_gate: float, max_leverage: float) -> np.ndarray:
+    """Score (n,): the full patch's term, or the smallest term over the full and half patches
+    where the full patch is not one surface (its rms above half_gate sigma: an edge, a step).
+
+    Early returns (droplets, dust, multi-path) lie in front of a surface, i.e. above the ground
+    for a scanner on a vehicle roof, hence the one-sided rule of ``_fit_term``. NaN where no
+    fit is usable.
     """
     n = terms.shape[0]
     score = np.full(n, np.nan)
     for i in prange(n):
-        best = np.inf
-        for f in range(terms.shape[1]):
-            r = terms[i, f, 0]
-            if np.isnan(r):
-                continue
-            if r < 0.0 and terms[i, f, 3] >= one_sided_nz:
-                r = 0.0
-            t = abs(r) / (sigma * np.sqrt(1.0 + terms[i, f, 1]))
-            g = rms_weight * terms[i, f, 2] / sigma
-            if g > t:
-                t = g
-            if t < best:
-                best = t
-        if best < np.inf:
-            score[i] = best
+        best = _fit_term(terms[i, 0], sigma, rms_weight, one_sided_nz, max_leverage)
+        if not terms[i, 0, 2] <= half_gate * sigma:  # also when the full fit is unusable
+            for f in range(1, terms.shape[1]):
+                t = _fit_term(terms[i, f], sigma, rms_weight, one_sided_nz, max_leverage)
+                if t < best or np.isnan(best):
+                    best = t
+        score[i] = best
     return score
 
 
@@ -279,9 +302,9 @@ def check_inputs(xyz: np.ndarray, k: int, sigma: float | str, threshold: float,
 def detect_height_field(
     xyz: np.ndarray,
     *,
-    k: int = 16,
+    k: int = 24,
     sigma: float | str = "auto",
-    threshold: float = 8.0,
+    threshold: float = 9.0,
     rms_weight: float = 0.5,
     one_sided: bool = True,
 ) -> DetectorResult:
@@ -317,7 +340,8 @@ def detect_height_field(
         sig, source = float(sigma), "given"
     if not sig > 0:  # a perfect synthetic surface: every residual is rounding
         sig = float(np.finfo(float).eps * max(1.0, float(np.abs(local).max())))
-    score = scores_from_terms(terms, sig, float(rms_weight), ONE_SIDED_NZ if one_sided else 2.0)
+    score = scores_from_terms(terms, sig, float(rms_weight), ONE_SIDED_NZ if one_sided else 2.0,
+                              HALF_GATE, MAX_LEVERAGE)
     flagged = score > threshold
     info.update(
         sigma=sig, sigma_source=source,

@@ -51,13 +51,16 @@ def slow_terms(xyz: np.ndarray, nbr_row: np.ndarray, i: int) -> np.ndarray:
     return out
 
 
-def slow_score(terms: np.ndarray, sigma: float, rms_weight: float, nz: float) -> float:
-    best = np.inf
-    for r, lev, rms, wz in terms:
-        if np.isnan(r):
-            continue
+def slow_score(terms: np.ndarray, sigma: float, rms_weight: float, nz: float,
+               half_gate: float, max_leverage: float) -> float:
+    def term(r, lev, rms, wz):
+        if np.isnan(r) or lev > max_leverage:
+            return np.inf
         r = 0.0 if (r < 0 and wz >= nz) else r
-        best = min(best, max(abs(r) / (sigma * np.sqrt(1 + lev)), rms_weight * rms / sigma))
+        return max(abs(r) / (sigma * np.sqrt(1 + lev)), rms_weight * rms / sigma)
+
+    fits = terms if not terms[0, 2] <= half_gate * sigma else terms[:1]
+    best = min(term(*f) for f in fits)
     return best if np.isfinite(best) else np.nan
 
 
@@ -133,14 +136,17 @@ def test_all_terms_match_explicit_reference():
 def test_scores_match_slow_loop():
     rng = np.random.default_rng(3)
     terms = rng.normal(size=(200, 5, 4)) * [0.01, 0.0, 0.003, 1.0]
+    terms[:, :, 2] = np.abs(terms[:, :, 2])
     terms[:, :, 1] = rng.uniform(0, 2, (200, 5))
     terms[:, :, 3] = rng.uniform(-1, 1, (200, 1))
     terms[rng.random((200, 5)) < 0.3, 0] = np.nan
     terms[0, :, 0] = np.nan
-    fast = scores_from_terms(terms, 0.002, 0.5, ONE_SIDED_NZ)
-    slow = np.array([slow_score(t, 0.002, 0.5, ONE_SIDED_NZ) for t in terms])
+    terms[rng.random((200, 5)) < 0.1, 1] = 50.0  # beyond the leverage limit
+    fast = scores_from_terms(terms, 0.002, 0.5, ONE_SIDED_NZ, 2.0, 10.0)
+    slow = np.array([slow_score(t, 0.002, 0.5, ONE_SIDED_NZ, 2.0, 10.0) for t in terms])
     np.testing.assert_allclose(fast, slow, rtol=1e-12)
     assert np.isnan(fast[0])
+    assert (terms[:, 0, 2] <= 0.004).any() and (terms[:, 0, 2] > 0.004).any()  # both branches
 
 
 # --------------------------------------------------------------------------------------------
