@@ -1,0 +1,84 @@
+"""Sensor profiles: which default pipeline suits a file, decided from its header and point layout.
+
+Issue 5 asks for one default pipeline, or a documented profile per sensor kind chosen from the
+file's header and point layout, never parameters tuned per file. Three kinds are told apart:
+
+``spinning``
+    A multi-channel spinning sensor's sweep stored in the sensor frame (WADS, KITTI-like
+    frames): the file has a channel dimension (an extra dimension called ``ring``,
+    ``laser_number``, ``channel`` or ``beam``) AND the sensor origin (0, 0, 0) lies inside the
+    XY bounds. Default pipeline: ``snow`` (dark and sparse in a range-scaled sphere), which
+    needs the sensor origin, hence the frame test.
+``airborne``
+    Sparse clouds: fewer than ``AIRBORNE_MAX_DENSITY`` points per square metre of the XY
+    bounding box (airborne tiles have 0.05-50; a mobile-mapping strip has thousands near the
+    vehicle). Default pipeline: ``detached`` (small clusters outside the surface's envelope).
+``mobile``
+    Everything else (mobile mapping, terrestrial): the paper's pipeline, ``temporal`` then
+    ``patch`` (``patch`` alone without gps_time), as :func:`worker.params.default_stages`.
+
+The facts are those the statistics already report for the input (``extra_dimensions``,
+``bounds``, ``points``, ``has_gps_time``), so the choice can be printed beside the result.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from worker.params import DetachedParams, SnowParams, default_stages
+
+#: Points per square metre of the XY bounding box below which a cloud is taken as airborne.
+AIRBORNE_MAX_DENSITY = 50.0
+
+#: Extra-dimension names (lower case) that mark a multi-channel spinning sensor.
+CHANNEL_DIMENSIONS = frozenset({"ring", "laser_number", "channel", "beam"})
+
+PROFILES = ("spinning", "airborne", "mobile")
+
+
+def choose_profile(facts: Mapping[str, Any]) -> str:
+    """``spinning``, ``airborne`` or ``mobile`` for a file described by ``facts``.
+
+    facts : mapping with ``extra_dimensions`` (list of names), ``bounds`` (``{"min": [x, y, z],
+    "max": [x, y, z]}`` in file coordinates) and ``points`` (int); missing keys count as absent.
+
+    >>> choose_profile({"extra_dimensions": ["ring"], "points": 114182,
+    ...                 "bounds": {"min": [-80, -70, -3], "max": [313, 80, 19]}})
+    'spinning'
+    >>> choose_profile({"extra_dimensions": [], "points": 37805,
+    ...                 "bounds": {"min": [698000, 6259243, 12], "max": [699000, 6260000, 266]}})
+    'airborne'
+    >>> choose_profile({"extra_dimensions": [], "points": 1077987,
+    ...                 "bounds": {"min": [0, 0, 0], "max": [15, 12.3, 4.6]}})
+    'mobile'
+    """
+    names = {str(n).lower() for n in facts.get("extra_dimensions") or []}
+    bounds = facts.get("bounds") or {}
+    lo, hi = bounds.get("min"), bounds.get("max")
+    if names & CHANNEL_DIMENSIONS and lo is not None and hi is not None:
+        if lo[0] <= 0.0 <= hi[0] and lo[1] <= 0.0 <= hi[1]:
+            return "spinning"
+    if lo is not None and hi is not None:
+        area = max(float(hi[0]) - float(lo[0]), 0.0) * max(float(hi[1]) - float(lo[1]), 0.0)
+        points = int(facts.get("points") or 0)
+        if area > 0 and points / area < AIRBORNE_MAX_DENSITY:
+            return "airborne"
+    return "mobile"
+
+
+def profile_stages(profile: str, has_gps_time: bool) -> list:
+    """The default pipeline of a profile (a list of stage parameter models, all defaults)."""
+    if profile == "spinning":
+        return [SnowParams()]
+    if profile == "airborne":
+        return [DetachedParams()]
+    if profile == "mobile":
+        return default_stages(has_gps_time)
+    raise ValueError(f"unknown profile {profile!r} (known: {', '.join(PROFILES)})")
+
+
+def default_pipeline(facts: Mapping[str, Any]) -> tuple[str, list]:
+    """(profile, stages) for a job that names no pipeline."""
+    profile = choose_profile(facts)
+    return profile, profile_stages(profile, bool(facts.get("has_gps_time")))
