@@ -57,6 +57,7 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
     assert "| No. of Outliers Identified | " in text and "3,414" in text
     assert "## ISPRS ground-filter samples" in text and "| samp21 | 2,500 |" in text
     assert "| **mean** |" in text
+    assert "### Recall by outlier kind" in text and "exhaust_plume" in text
     assert "## Airborne gross outliers" in text
     for name in DETECTORS:
         assert any(line.startswith(f"| {name} | ") for line in text.split("## Speed")[1]
