@@ -79,6 +79,11 @@ try:  # Shewchuk's Triangle is ~10x faster than Qhull in 2-D; optional (non-comm
 except ImportError:  # pragma: no cover - depends on the environment
     _triangle = None
 
+#: Tolerance growth with the terrain grade in step 6 (metres per unit of tan(slope)), as SMRF's.
+SLOPE_TOLERANCE = 1.2
+#: Quantile of the neighbours' z that a low outlier is compared with (step 3).
+LOW_QUANTILE = 0.25
+
 
 @dataclass
 class GroundResult:
@@ -356,52 +361,6 @@ def triangle_slopes(xy: np.ndarray, z: np.ndarray, tri: np.ndarray) -> np.ndarra
 
 
 @njit(cache=True)
-def raise_low_outliers(
-    xy: np.ndarray,
-    z: np.ndarray,
-    tri: np.ndarray,
-    tan_thr: float,
-    min_depth: float,
-    low: np.ndarray,
-) -> int:
-    """One pass of low-outlier removal, in place on ``z`` and ``low``.
-
-    A vertex is a low outlier when every TIN edge leaving it climbs by more than ``min_depth`` and
-    more steeply than ``tan_thr``. It is raised to the elevation of its lowest neighbour (so that it
-    no longer makes its neighbours look like objects) and marked in ``low``. Returns the number
-    found in this pass.
-    """
-    n = z.shape[0]
-    is_pit = np.zeros(n, np.bool_)
-    in_tin = np.zeros(n, np.bool_)
-    lowest_nb = np.full(n, np.inf)
-    for t in range(tri.shape[0]):
-        for k in range(3):
-            a, b = tri[t, k], tri[t, (k + 1) % 3]
-            in_tin[a] = True
-            in_tin[b] = True
-    is_pit[:] = in_tin
-    for t in range(tri.shape[0]):
-        for k in range(3):
-            a, b = tri[t, k], tri[t, (k + 1) % 3]
-            d = math.hypot(xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1])
-            dz = z[b] - z[a]
-            if not (dz > min_depth and dz > tan_thr * d):
-                is_pit[a] = False
-            if not (-dz > min_depth and -dz > tan_thr * d):
-                is_pit[b] = False
-            lowest_nb[a] = min(lowest_nb[a], z[b])
-            lowest_nb[b] = min(lowest_nb[b], z[a])
-    found = 0
-    for v in range(n):
-        if is_pit[v]:
-            z[v] = lowest_nb[v]
-            low[v] = True
-            found += 1
-    return found
-
-
-@njit(cache=True)
 def _vertex_triangles(tri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """CSR map vertex -> incident triangles: ``idx[ptr[v]:ptr[v + 1]]``."""
     ptr = np.zeros(n + 1, np.int64)
@@ -613,9 +572,6 @@ def _resolve_duplicates(
     return is_ground, z_adj
 
 
-#: Tolerance growth with the terrain grade in step 6 (metres per unit of tan(slope)); SMRF's 1.2.
-SLOPE_TOLERANCE = 1.2
-LOW_QUANTILE = 0.25
 
 
 def _low_reference(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -679,12 +635,15 @@ def find_low_outliers(
     return z < ref - depth, ref
 
 
-def opened_minimum_surface(xy: np.ndarray, z: np.ndarray, window: float) -> np.ndarray:
-    """Morphological opening of the lowest-point raster, sampled at the points, (n,) float64.
+def opened_minimum_surface(
+    xy: np.ndarray, z: np.ndarray, window: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Morphological opening of the lowest-point raster and its grade, sampled at the points.
 
     Cells of about one point spacing hold the lowest z that falls in them (empty cells take their
     nearest filled cell); a grey opening with a square of ``window`` metres removes everything
     narrower than the window (objects) but keeps wider raised ground (terraces, embankment tops).
+    Returns the opened surface (n,) and its grade |grad z| (n,) by differences on the raster.
     """
     n = z.shape[0]
     lo = xy.min(axis=0)
@@ -702,6 +661,8 @@ def opened_minimum_surface(xy: np.ndarray, z: np.ndarray, window: float) -> np.n
         grid = grid[ii, jj]
     w = max(int(round(window / cell)) | 1, 1)
     opened = grey_opening(grid, size=(w, w))
-    gx, gy = np.gradient(opened, cell)
+    # a raster one cell thin (a narrow strip of points) has no slope across it
+    gx = np.gradient(opened, cell, axis=0) if shape[0] > 1 else np.zeros_like(opened)
+    gy = np.gradient(opened, cell, axis=1) if shape[1] > 1 else np.zeros_like(opened)
     grade = np.hypot(gx, gy)
     return opened.reshape(-1)[flat], grade.reshape(-1)[flat]

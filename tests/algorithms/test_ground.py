@@ -228,6 +228,14 @@ def test_tiny_inputs_are_all_ground(n):
     assert res.is_ground.shape == (n,) and res.is_ground.all()
 
 
+def test_thin_strip_of_points():
+    rng = np.random.default_rng(8)
+    x, y = rng.random(200) * 100, rng.random(200) * 0.3
+    z = np.where((x > 40) & (x < 45), 6.0, 0.0)
+    res = classify_ground(np.column_stack([x, y, z]))
+    np.testing.assert_array_equal(res.is_ground, z == 0.0)
+
+
 def test_collinear_points_are_all_ground():
     t = np.linspace(0, 10, 20)
     res = classify_ground(np.column_stack([t, 2 * t, np.sin(t)]))
