@@ -6,8 +6,10 @@ points form clumps of one or two points when points closer than 1 m are linked, 
 each other from any per-point neighbourhood test (their nearest neighbour is a fellow outlier).
 This detector therefore works on clusters, in two steps:
 
-1. Candidates: the connected components of the graph that links points closer than ``link``
-   metres; a component of at most ``max_cluster`` points is a candidate cluster. The
+1. Candidates: the connected components of the graph that links points closer than
+   max(``link``, ``link_spacing`` x the cloud's median nearest-neighbour distance) metres (so
+   sparse clouds, 1-2 m spacing, are not cut into fragments); a component of at most
+   ``max_cluster`` points is a candidate cluster. The
    components are computed exactly from each point's ``max_cluster`` nearest neighbours (a
    component that small is fully linked through them; see :func:`small_clusters`).
 2. Test: for each candidate point, the ``k_surface`` nearest NON-candidate points in XY get a
@@ -15,6 +17,9 @@ This detector therefore works on clusters, in two steps:
    out); the candidate is an outlier when its plane residual lies more than ``below`` metres
    under the lowest residual of those surface points, or more than ``above`` metres over the
    highest one. Score = max((lowest - r) / below, (r - highest) / above); flagged when > 1.
+   ``above`` is large (10 m) because real objects (trees, buildings) that are sparse enough to
+   form small clusters stand a few metres over the ground's envelope; gross high returns stand
+   tens of metres over it. ``below`` is small: nothing real lies under the ground.
 
 Small real objects inside the surface's vertical envelope (a lone pole, a sparse hedge, a
 scan line at a tile's edge) stay unflagged; the envelope is the surface's own range of
@@ -104,19 +109,31 @@ def envelope_scores(
     return score
 
 
+def median_spacing(xyz: np.ndarray, max_points: int = 100_000) -> float:
+    """Median distance of a point to its nearest other point (a regular subsample of at most
+    ``max_points`` query points, all points in the tree). xyz : (n, 3). 0.0 for n < 2."""
+    if len(xyz) < 2:
+        return 0.0
+    step = max(1, len(xyz) // max_points)
+    dist, _ = cKDTree(xyz).query(xyz[::step], k=2)
+    return float(np.median(dist[:, 1]))
+
+
 def detect_detached(
     xyz: np.ndarray,
     *,
     link: float = 3.0,
+    link_spacing: float = 4.0,
     max_cluster: int = 10,
     k_surface: int = 128,
     below: float = 1.0,
-    above: float = 2.0,
+    above: float = 10.0,
 ) -> DetectorResult:
     """Flag small clusters that lie under or over the local surface's vertical envelope.
 
     xyz : (n, 3) float64 metres (any frame; centre large coordinates first for speed of the
     tree, the arithmetic itself is centred per neighbourhood).
+    The link distance is max(link, link_spacing x :func:`median_spacing`); info reports it.
     Returns a DetectorResult: score of :func:`envelope_scores` for the points of small clusters,
     NaN for the others (not tested); critical value 1.
 
@@ -134,14 +151,20 @@ def detect_detached(
     for name, value in (("link", link), ("below", below), ("above", above)):
         if not value > 0:
             raise ValueError(f"{name} must be > 0, got {value!r}")
+    if not link_spacing >= 0:
+        raise ValueError(f"link_spacing must be >= 0, got {link_spacing!r}")
     if max_cluster < 1 or k_surface < 3:
         raise ValueError("max_cluster must be >= 1 and k_surface >= 3")
     local = xyz - xyz.mean(axis=0) if len(xyz) else xyz
-    candidate = small_clusters(local, link, max_cluster)
+    spacing = median_spacing(local)
+    link_used = max(float(link), link_spacing * spacing)
+    candidate = small_clusters(local, link_used, max_cluster)
     score = envelope_scores(local, candidate, k_surface=k_surface, below=below, above=above)
     flagged = np.nan_to_num(score, nan=0.0) > 1.0
     info = {
-        "link": float(link), "max_cluster": int(max_cluster), "k_surface": int(k_surface),
+        "link": float(link), "link_spacing": float(link_spacing),
+        "median_spacing": spacing, "link_used": link_used,
+        "max_cluster": int(max_cluster), "k_surface": int(k_surface),
         "below": float(below), "above": float(above),
         "candidates": int(candidate.sum()),
         "points_tested": int(np.isfinite(score).sum()), "points_flagged": int(flagged.sum()),

@@ -148,7 +148,8 @@ def _run_detached(cloud: Cloud, params: DetachedParams) -> DetectorResult:
     from algorithms.detached import detect_detached
 
     return detect_detached(
-        cloud.xyz, link=params.link, max_cluster=params.max_cluster,
+        cloud.xyz, link=params.link, link_spacing=params.link_spacing,
+        max_cluster=params.max_cluster,
         k_surface=params.k_surface, below=params.below, above=params.above,
     )
 

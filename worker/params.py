@@ -181,7 +181,13 @@ class DetachedParams(_Stage):
 
     detector: Literal["detached"] = "detached"
     link: float = Field(
-        3.0, gt=0.0, le=1000.0, description="Metres: points closer than this form one cluster."
+        3.0, gt=0.0, le=1000.0,
+        description="Metres: points closer than max(link, link_spacing x median spacing) form one "
+        "cluster.",
+    )
+    link_spacing: float = Field(
+        4.0, ge=0.0, le=1000.0,
+        description="Multiple of the cloud's median nearest-neighbour distance for the link.",
     )
     max_cluster: int = Field(
         10, ge=1, le=1000, description="Clusters of at most this many points are tested."
@@ -193,7 +199,7 @@ class DetachedParams(_Stage):
         1.0, gt=0.0, le=1000.0, description="Metres under the lowest surface residual: outlier."
     )
     above: float = Field(
-        2.0, gt=0.0, le=1000.0, description="Metres over the highest surface residual: outlier."
+        10.0, gt=0.0, le=1000.0, description="Metres over the highest surface residual: outlier."
     )
 
 

@@ -8,7 +8,12 @@ import laspy
 import numpy as np
 import pytest
 
-from algorithms.detached import detect_detached, envelope_scores, small_clusters
+from algorithms.detached import (
+    detect_detached,
+    envelope_scores,
+    median_spacing,
+    small_clusters,
+)
 
 AIRBORNE = Path(__file__).resolve().parents[1] / "data" / "airborne"
 
@@ -89,6 +94,25 @@ def test_floating_and_sunken_clumps_are_found_rough_surface_raises_nothing():
     assert res.flagged[len(ground):].all()
     assert not res.flagged[:len(ground)].any()
     assert not detect_detached(ground).flagged.any()
+
+
+def test_median_spacing_matches_explicit_distances():
+    xyz = rough_terrain(9, 300)
+    slow = np.median([np.sort(np.sqrt(((xyz - p) ** 2).sum(1)))[1] for p in xyz])
+    assert median_spacing(xyz) == pytest.approx(slow, rel=1e-12)
+    assert median_spacing(xyz[:1]) == 0.0
+
+
+def test_sparse_cloud_keeps_its_small_objects():
+    """1.6 m spacing (an ISPRS-like airborne cloud): a 6 m tree of 5 points is no outlier."""
+    rng = np.random.default_rng(10)
+    ground = rough_terrain(10, 600)  # 40 m x 40 m, ~1.6 m spacing
+    tree = np.array([20.0, 20.0, 9.0]) + rng.normal(0, 0.5, (5, 3))
+    res = detect_detached(np.vstack([ground, tree]))
+    assert res.info["link_used"] > 3.0
+    assert not res.flagged.any()
+    far = detect_detached(np.vstack([ground, tree + [0, 0, 30]]))
+    assert far.flagged[len(ground):].all() and not far.flagged[:len(ground)].any()
 
 
 def test_results_unchanged_by_a_5e6_shift():
