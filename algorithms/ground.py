@@ -29,7 +29,9 @@ The abstract leaves several things open; this implementation decides them as fol
   at 0): an overshoot would dig a pit that spreads object labels over the terrain.
 * **Iteration.** Only the triangles that touch an adjusted vertex get their slope recomputed. The
   loop ends when a round adjusts no vertex (remaining step-edge triangles, if any, are slivers
-  with no steep edge) or after ``max_iterations`` rounds. Each round peels one ring of points off
+  with no steep edge or steps lower than ``min_object_height``) or after ``max_iterations``
+  rounds. A step-edge triangle without a higher vertex is examined again only when one of its
+  vertices moves. Each round peels one ring of points off
   an object, so ``max_iterations`` must exceed half the width of the largest building in point
   spacings (the default, 1000, is in practice "until converged").
 * **Step height.** An edge is only a step when its rise also exceeds ``min_object_height``
@@ -403,16 +405,19 @@ def adjust_step_edges(
     prop_sum: np.ndarray,
     prop_cnt: np.ndarray,
     touched: np.ndarray,
+    productive: np.ndarray,
 ) -> int:
     """One round of proposals: for each step-edge triangle in ``edge_list``, the elevation its
     higher vertices would get from the lower vertex and the local slope of the non-edge neighbours.
 
-    Accumulates into ``prop_sum``/``prop_cnt`` (zero on entry) and lists the vertices that got a
-    proposal in ``touched``; returns their number. Nothing in ``z`` changes here.
+    Accumulates into ``prop_sum``/``prop_cnt`` (zero on entry), lists the vertices that got a
+    proposal in ``touched`` and marks in ``productive[i]`` whether ``edge_list[i]`` had a higher
+    vertex; returns the number of touched vertices. Nothing in ``z`` changes here.
     """
     n_touched = 0
     for i in range(edge_list.shape[0]):
         t = edge_list[i]
+        productive[i] = False
         low = _lowest_vertex(t, tri, z)
         gx = 0.0
         gy = 0.0
@@ -434,6 +439,7 @@ def adjust_step_edges(
             dy = xy[v, 1] - xy[low, 1]
             rise = z[v] - z[low]
             if rise > min_step and rise > tan_thr * math.hypot(dx, dy):
+                productive[i] = True
                 if prop_cnt[v] == 0:
                     touched[n_touched] = v
                     n_touched += 1
@@ -458,7 +464,8 @@ def iterate_step_edges(
     """The TIN step-edge iteration, in place on ``z`` (the adjusted elevations).
 
     Returns ``adjusted`` (n,) bool, ``pending`` (n,) bool (vertices a further round would still
-    adjust), the number of step-edge triangles at the start of each round,
+    adjust), the number of step-edge triangles examined in each round (all of them in the first,
+    then those with a higher vertex or a moved vertex),
     the number of vertices adjusted in each round, and the step-edge triangles left at the end.
     """
     n = z.shape[0]
@@ -488,6 +495,7 @@ def iterate_step_edges(
     prop_cnt = np.zeros(n, np.int64)
     touched = np.empty(n, np.int64)
     stamp = np.full(m, -1, np.int64)
+    productive = np.empty(m, np.bool_)
     edges_per_round: list[int] = []
     moved_per_round: list[int] = []
     for it in range(max_iterations):
@@ -497,7 +505,7 @@ def iterate_step_edges(
         # step 2: lower vertex terrain, higher vertices get proposals from the local slope
         n_touched = adjust_step_edges(
             xy, z, tri, nbr, grad, is_edge, edge_list, tan_thr, min_step,
-            prop_sum, prop_cnt, touched,
+            prop_sum, prop_cnt, touched, productive,
         )
         moved_per_round.append(n_touched)
         if n_touched == 0:
@@ -509,14 +517,18 @@ def iterate_step_edges(
             adjusted[v] = True
             prop_sum[v] = 0.0
             prop_cnt[v] = 0
-        # step 4: recompute the slopes of the modified triangles, collect the new step edges
+        # step 4: recompute the slopes of the modified triangles, collect the new step edges. A
+        # step-edge triangle without a higher vertex (a steep but low step, e.g. noise between
+        # close points) cannot produce one until a vertex of it moves: it is only re-examined
+        # then, so that dense clouds do not revisit it in every round.
         cand = np.empty(edge_list.shape[0] + 12 * n_touched, np.int64)
         nc = 0
         for i in range(edge_list.shape[0]):
             t = edge_list[i]
-            stamp[t] = it
-            cand[nc] = t
-            nc += 1
+            if productive[i]:
+                stamp[t] = it
+                cand[nc] = t
+                nc += 1
         for i in range(n_touched):
             v = touched[i]
             for p in range(ptr[v], ptr[v + 1]):
@@ -543,12 +555,18 @@ def iterate_step_edges(
         edge_list = cand[:k].copy()
     # vertices that a further round would still move: the front of an unfinished peel
     pending = np.zeros(n, np.bool_)
+    productive = np.empty(edge_list.shape[0], np.bool_)
     n_touched = adjust_step_edges(
-        xy, z, tri, nbr, grad, is_edge, edge_list, tan_thr, min_step, prop_sum, prop_cnt, touched
+        xy, z, tri, nbr, grad, is_edge, edge_list, tan_thr, min_step,
+        prop_sum, prop_cnt, touched, productive,
     )
     for i in range(n_touched):
         pending[touched[i]] = True
-    return adjusted, pending, edges_per_round, moved_per_round, edge_list.shape[0]
+    remaining = 0
+    for t in range(m):
+        if is_edge[t]:
+            remaining += 1
+    return adjusted, pending, edges_per_round, moved_per_round, remaining
 
 
 def _resolve_duplicates(

@@ -112,7 +112,7 @@ def test_full_iteration_matches_repeated_slow_rounds(seed):
     assert not pending.any()
     assert set(np.flatnonzero(adjusted)) == ever
     np.testing.assert_allclose(z_fast, z_slow, rtol=1e-9, atol=1e-9)
-    assert len(edges) == len(moved) and moved[-1] == 0
+    assert len(edges) == len(moved) and sum(moved) >= len(ever)
 
 
 def test_adjustment_only_lowers_and_never_below_the_lower_vertex():
