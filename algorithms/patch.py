@@ -19,8 +19,10 @@ from worker.errors import ParameterError
 #: Patches fitted per batch: 65536 x 40 x 3 float64 = 63 MB of gathered coordinates.
 BATCH_POINTS = 65536
 #: Adjustments per patch at most, and the step size taken as convergence (||da||, ||a|| = 1).
+#: 1e-7 leaves T_i within ~1e-5 of its fully converged value (the critical value is ~3.6) and
+#: saves ~10 % of the time against 1e-8.
 FIT_MAX_ITER = 100
-FIT_TOL = 1e-8
+FIT_TOL = 1e-7
 
 
 def check_xyz(xyz: np.ndarray) -> np.ndarray:
