@@ -133,7 +133,7 @@ def _run_dror(cloud: Cloud, params: DrorParams) -> DetectorResult:
 def _run_snow(cloud: Cloud, params: SnowParams) -> DetectorResult:
     from algorithms.snow import detect_snow
 
-    intensity = getattr(cloud, "intensity", None)
+    intensity = cloud.intensity
     if intensity is None:
         raise MissingDimensionError("the snow detector needs the points' intensity, which was "
                                     "not read from this file")

@@ -90,6 +90,8 @@ class Cloud:
     gps_time : (n,) float64 or None
         GPS time in seconds; None for point formats without it.
     point_source_id, classification, return_number, number_of_returns : (n,) integer arrays
+    intensity : (n,) uint16 or None
+        Pulse return strength (the ``snow`` detector uses it); None when not read.
     """
 
     xyz: np.ndarray
@@ -99,6 +101,7 @@ class Cloud:
     classification: np.ndarray
     return_number: np.ndarray
     number_of_returns: np.ndarray
+    intensity: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -113,6 +116,7 @@ class Cloud:
             classification=self.classification[index],
             return_number=self.return_number[index],
             number_of_returns=self.number_of_returns[index],
+            intensity=None if self.intensity is None else self.intensity[index],
         )
 
 
@@ -416,6 +420,7 @@ def read_cloud(
     cls = np.empty(n, dtype=np.uint8)
     rn = np.empty(n, dtype=np.uint8)
     nr = np.empty(n, dtype=np.uint8)
+    intensity = np.empty(n, dtype=np.uint16)
     start = 0
     lo, hi = progress_span
     for chunk in iter_chunks(path, chunk_points):
@@ -427,10 +432,11 @@ def read_cloud(
         cls[start:stop] = np.asarray(chunk.classification)
         rn[start:stop] = np.asarray(chunk.return_number)
         nr[start:stop] = np.asarray(chunk.number_of_returns)
+        intensity[start:stop] = chunk.array["intensity"]
         start = stop
         if progress is not None:
             progress(lo + (hi - lo) * stop / max(n, 1), f"reading {stop:,} of {n:,} points")
-    return Cloud(xyz, origin, gps, psid, cls, rn, nr)
+    return Cloud(xyz, origin, gps, psid, cls, rn, nr, intensity)
 
 
 # --------------------------------------------------------------------------- writing
