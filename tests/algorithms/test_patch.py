@@ -7,6 +7,7 @@ import pytest
 
 from algorithms.patch import detect_patch
 from algorithms.stats import t_critical_value
+from algorithms.tiles import grid_cells, group_by_cell, spatial_batches
 from tests.algorithms.test_quadric import slow_fit
 from worker.errors import ParameterError
 
@@ -122,3 +123,26 @@ def test_per_axis_sigma_is_accepted():
     res = detect_patch(xyz, sigma=(0.01, 0.01, 0.005))
     assert res.info["sigma"] == [0.01, 0.01, 0.005]
     assert res.flagged[50]
+
+
+def test_spatial_batches_cover_every_point_once():
+    rng = np.random.default_rng(10)
+    xy = rng.uniform(0.0, 30.0, (5000, 2))
+    for batch_points, tile_size in [(1, None), (37, 0.5), (1000, None), (10**6, None)]:
+        batches = list(spatial_batches(xy, batch_points, tile_size))
+        assert all(1 <= len(b) <= batch_points for b in batches)
+        np.testing.assert_array_equal(np.sort(np.concatenate(batches)), np.arange(5000))
+
+
+def test_grid_cells_follow_the_cloud():
+    rng = np.random.default_rng(11)
+    xy = np.round(rng.uniform(0.0, 20.0, (1000, 2)) * 64) / 64
+    cell, n_columns = grid_cells(xy, 5.0)
+    shifted, n_columns_shifted = grid_cells(xy + np.array([5e6, 4e6]), 5.0)
+    np.testing.assert_array_equal(cell, shifted)
+    assert n_columns == n_columns_shifted == 4
+    order, offsets = group_by_cell(cell)
+    assert offsets[0] == 0 and offsets[-1] == 1000
+    for j in range(len(offsets) - 1):
+        members = cell[order[offsets[j] : offsets[j + 1]]]
+        assert (members == members[0]).all()
