@@ -1,4 +1,7 @@
-"""One exception root for everything a user can get wrong; each message is one line that says what to fix."""
+"""One exception root for everything a user can get wrong.
+
+Each message is one line that says what to fix.
+"""
 
 
 class LidarOutliersError(Exception):
@@ -6,7 +9,7 @@ class LidarOutliersError(Exception):
 
 
 class LasFormatError(LidarOutliersError):
-    """The file is not a readable LAS/LAZ file (bad signature, truncated, inconsistent header...)."""
+    """Not a readable LAS/LAZ file (bad signature, truncated, inconsistent header...)."""
 
 
 class MissingDimensionError(LidarOutliersError):

@@ -54,10 +54,12 @@ class TemporalParams(_Stage):
 
 
 class PatchParams(_Stage):
-    """Algorithm (b): quadric surface (eqs. 18-31) fitted to the k nearest neighbours of each point."""
+    """Algorithm (b): quadric (eqs. 18-31) fitted to the k nearest neighbours of each point."""
 
     detector: Literal["patch"] = "patch"
-    k: int = Field(40, ge=10, le=500, description="Neighbours per patch, the point itself included.")
+    k: int = Field(
+        40, ge=10, le=500, description="Neighbours per patch, the point itself included."
+    )
     sigma: float = Field(
         0.005, gt=0.0, description="Coordinate standard deviation in metres (D_ii = sigma^2 I)."
     )
@@ -245,7 +247,9 @@ class PipelineParams(BaseModel):
     classify: bool = Field(
         True, description="Write noise_class to flagged points (and 2/1 for ground)."
     )
-    noise_class: int = Field(7, ge=0, le=255, description="ASPRS class for flagged points (7 or 18).")
+    noise_class: int = Field(
+        7, ge=0, le=255, description="ASPRS class for flagged points (7 or 18)."
+    )
     reference_classes: list[int] | None = Field(
         None,
         description="Input classes taken as truth (e.g. [7, 18] for noise, [2] for ground); adds "
