@@ -10,7 +10,8 @@ as ``lidar-outliers simulate``). Detectors, all at their defaults:
 - ``free_space`` (:mod:`algorithms.mobile_free_space`), with each point's scanner position taken
   from the simulated trajectory and the scanners' lever arms (``SCANNERS`` of the simulator),
   as a mobile-mapping system delivers them;
-- ``mobile`` = a point flagged by either (the proposed default for mobile-mapping files).
+- ``transient`` (:mod:`algorithms.mobile_transient`), coordinates and GPS times only;
+- ``mobile`` = a point flagged by any of them (the proposed default for mobile-mapping files).
 
 Prints per condition and seed: points, outliers, recall and false alarms (% of the real points)
 for each detector, the union's recall per outlier kind, and points per second; then the pooled
@@ -32,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from algorithms.mobile_free_space import detect_free_space, scanner_origins  # noqa: E402
 from algorithms.mobile_height_field import detect_height_field  # noqa: E402
+from algorithms.mobile_transient import detect_transient  # noqa: E402
 from lidar_outliers.simulator import KIND_NAMES, SCANNERS, simulate  # noqa: E402
 
 #: Scanner lever arms (forward, left, up) relative to the trajectory's reference point: the
@@ -55,8 +57,11 @@ def run_one(condition: str, seed: int, scale: float) -> dict:
     origin = scanner_origins(cloud.gps_time, cloud.point_source_id, cloud.trajectory, LEVER_ARMS)
     fs = detect_free_space(cloud.xyz, origin)
     row["free_space_s"] = time.perf_counter() - start
-    flags = {"height_field": hf.flagged, "free_space": fs.flagged,
-             "mobile": hf.flagged | fs.flagged}
+    start = time.perf_counter()
+    tr = detect_transient(cloud.xyz, cloud.gps_time)
+    row["transient_s"] = time.perf_counter() - start
+    flags = {"height_field": hf.flagged, "free_space": fs.flagged, "transient": tr.flagged,
+             "mobile": hf.flagged | fs.flagged | tr.flagged}
     for name, f in flags.items():
         row[f"{name}_tp"] = int((f & out).sum())
         row[f"{name}_fp"] = int((f & ~out).sum())
@@ -75,18 +80,19 @@ def pct(a: int, b: int) -> float:
 
 def table(rows: list[dict]) -> list[str]:
     head = ("| cloud | points | outliers | height_field recall / FA % | free_space recall / FA % "
-            "| mobile recall / FA % | mobile recall per kind | height_field pts/s "
-            "| free_space pts/s |")
-    lines = [head, "|" + " --- |" * 9]
+            "| transient recall / FA % | mobile recall / FA % | mobile recall per kind "
+            "| height_field pts/s | free_space pts/s | transient pts/s |")
+    lines = [head, "|" + " --- |" * 11]
     for r in rows:
         real = r["points"] - r["outliers"]
         cells = [f"{r['condition']}_{r['seed']}", f"{r['points']:,}", f"{r['outliers']:,}"]
-        for name in ("height_field", "free_space", "mobile"):
+        for name in ("height_field", "free_space", "transient", "mobile"):
             cells.append(f"{pct(r[name + '_tp'], r['outliers']):.1f} / "
                          f"{pct(r[name + '_fp'], real):.4f}")
         cells.append(", ".join(f"{k} {tp}/{n}" for k, (tp, n) in r["kinds"].items()))
         cells.append(f"{r['points'] / r['height_field_s']:,.0f}")
         cells.append(f"{r['points'] / r['free_space_s']:,.0f}")
+        cells.append(f"{r['points'] / r['transient_s']:,.0f}")
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
