@@ -29,6 +29,7 @@ from worker.params import (
     SectionParams,
     SnowParams,
     TemporalParams,
+    TransientParams,
 )
 
 
@@ -103,6 +104,15 @@ def _run_height_field(cloud: Cloud, params: HeightFieldParams) -> DetectorResult
     return detect_height_field(
         cloud.xyz, k=params.k, sigma=params.sigma, threshold=params.threshold,
         rms_weight=params.rms_weight, one_sided=params.one_sided,
+    )
+
+
+def _run_transient(cloud: Cloud, params: TransientParams) -> DetectorResult:
+    from algorithms.mobile_transient import detect_transient
+
+    gps_time = _require_gps_time(cloud, "transient")
+    return detect_transient(
+        cloud.xyz, gps_time, k=params.k, radius=params.radius, min_dt=params.min_dt
     )
 
 
@@ -195,6 +205,15 @@ DETECTORS: dict[str, DetectorSpec] = {
         kind="ground",
         bit=None,
         summary="Iterative TIN ground filter: class 2 (ground) or 1 for unflagged points.",
+    ),
+    "transient": DetectorSpec(
+        name="transient",
+        params_model=TransientParams,
+        run=_run_transient,
+        kind="outlier",
+        bit=OUTLIER_DETECTOR_BITS["transient"],
+        summary="Clusters seen at one moment only and attached to nothing (moving objects).",
+        needs=("gps_time",),
     ),
     "dror": DetectorSpec(
         name="dror",

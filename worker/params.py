@@ -205,6 +205,22 @@ class DetachedParams(_Stage):
     )
 
 
+class TransientParams(_Stage):
+    """Mobile mapping: single-epoch clusters attached to nothing (moving objects)."""
+
+    detector: Literal["transient"] = "transient"
+    k: int = Field(24, ge=1, le=200, description="Neighbours searched per point.")
+    radius: float = Field(
+        0.2, gt=0.0, le=100.0,
+        description="Metres: neighbours this close count; clusters link at this distance.",
+    )
+    min_dt: float = Field(
+        0.5, gt=0.0, le=1e6,
+        description="Seconds: a neighbour recorded this much earlier or later makes a point "
+        "persistent (seen again by the other scanner or on another pass).",
+    )
+
+
 def _require_positive(value: float | str, name: str) -> None:
     if not isinstance(value, str) and not value > 0:
         raise ValueError(f"{name} must be > 0 or 'auto', got {value!r}")
@@ -212,13 +228,13 @@ def _require_positive(value: float | str, name: str) -> None:
 
 #: Outlier detectors, by name, with their bit in the ``outlier_flags`` extra dimension.
 OUTLIER_DETECTOR_BITS: dict[str, int] = {
-    "temporal": 1, "patch": 2, "section": 4, "height_field": 64,
+    "temporal": 1, "patch": 2, "section": 4, "height_field": 64, "transient": 128,
     "dror": 8, "snow": 16, "detached": 32,
 }
 
 Stage = Annotated[
     TemporalParams | PatchParams | SectionParams | GroundParams | HeightFieldParams
-    | DrorParams | SnowParams | DetachedParams,
+    | TransientParams | DrorParams | SnowParams | DetachedParams,
     Field(discriminator="detector"),
 ]
 
@@ -228,6 +244,7 @@ STAGE_MODELS: dict[str, type[_Stage]] = {
     "section": SectionParams,
     "ground": GroundParams,
     "height_field": HeightFieldParams,
+    "transient": TransientParams,
     "dror": DrorParams,
     "snow": SnowParams,
     "detached": DetachedParams,
