@@ -72,6 +72,7 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
             assert conf["outliers_identified"] + conf["outliers_missed"] == conf["outliers"]
     speed = numbers["speed"]["temporal"]
     assert speed["points"] > 0 and speed["peak_rss_mb"] >= speed["rss_before_mb"] > 0
+    assert speed["run_peak_rss_mb"] >= speed["rss_before_mb"]
     # a second run reuses the cached clouds: same files, untouched
     mtimes = {p: p.stat().st_mtime_ns for p in cached}
     assert main(["bench", "--quick", "--scale", "0.03", "--cache", str(tmp_path / "cache"),
