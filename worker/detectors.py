@@ -119,9 +119,7 @@ def _run_transient(cloud: Cloud, params: TransientParams) -> DetectorResult:
 def _run_ground(cloud: Cloud, params: GroundParams) -> GroundResult:
     from algorithms.ground import classify_ground
 
-    out = classify_ground(
-        cloud.xyz, slope_threshold=params.slope_threshold, max_iterations=params.max_iterations
-    )
+    out = classify_ground(cloud.xyz, **params.model_dump(exclude={"detector"}))
     return GroundResult(is_ground=np.asarray(out.is_ground, dtype=bool), info=dict(out.info))
 
 
