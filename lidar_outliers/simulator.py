@@ -19,8 +19,10 @@ This module builds the closest honest substitute, in pure numpy:
   streaks on the moving barrier arm; B about 0.3 % in many small clumps plus arm streaks; C about
   0.01 %, most within a few cm of the surface.
 
-Only points inside the clipped strip are kept, as the paper clipped its three clouds from the
-survey. Everything is arrays in, arrays out; writing LAS is the command's job.
+Only points over the clipped strip are kept (8 m of asphalt across, 15 m along, everything above
+it included), as the paper clipped its three clouds from the survey: cars, curbs, poles and the
+wall stand outside it, so they show only as occlusion shadows, while the manhole lids, the arm and
+the outliers lie inside. Everything is arrays in, arrays out; writing LAS is the command's job.
 """
 
 from __future__ import annotations
@@ -65,12 +67,14 @@ class Scene:
     """The strip's geometry in metres; x along the strip, y across, z up (road crown at y = 0)."""
 
     length: float = 15.0
-    half_width: float = 5.5  # curb to curb / 2
-    crop_y: tuple[float, float] = (-6.2, 6.2)
+    half_width: float = 6.5  # curb to curb / 2
+    # the clipped cloud: the asphalt the vehicle drove over (the paper's test strips were
+    # asphalt); parked cars, curbs, poles and the wall stand outside it but occlude it
+    crop_y: tuple[float, float] = (-4.0, 4.0)
     crown: float = 0.06  # road centre above its edges
     grade: float = 0.005  # dz/dx
     curb: float = 0.15
-    wall_y: float = 6.1
+    wall_y: float = 7.4
     wall_height: float = 3.0
     roughness: float = 0.0015  # RMS of the asphalt texture
     range_sigma: float = 0.003
@@ -102,17 +106,17 @@ class Condition:
 
 CONDITIONS: dict[str, Condition] = {
     "A": Condition(
-        "A", lanes=(-1.5, 1.5), speeds=(2.3, 2.3), stop_seconds=3.0, stop_at=0.55,
+        "A", lanes=(-1.5, 1.5), speeds=(1.37, 1.37), stop_seconds=3.0, stop_at=0.55,
         outlier_share=TABLE1["A"][1] / TABLE1["A"][0], arm=True, arm_share=0.1,
         kind_weights={EXHAUST: 0.55, WATER: 0.45},
     ),
     "B": Condition(
-        "B", lanes=(-1.5, 1.5), speeds=(7.8, 7.8), stop_seconds=3.0, stop_at=1.25,
+        "B", lanes=(-1.5, 1.5), speeds=(4.55, 4.55), stop_seconds=3.0, stop_at=1.25,
         outlier_share=TABLE1["B"][1] / TABLE1["B"][0], arm=True, arm_share=0.35,
         kind_weights={EXHAUST: 0.5, WATER: 0.5},
     ),
     "C": Condition(
-        "C", lanes=(-1.5, 1.5), speeds=(9.9, 9.9), stop_seconds=3.0, stop_at=1.25,
+        "C", lanes=(-1.5, 1.5), speeds=(5.7, 5.7), stop_seconds=3.0, stop_at=1.25,
         outlier_share=TABLE1["C"][1] / TABLE1["C"][0], arm=False, arm_share=0.0,
         kind_weights={NEAR_SURFACE: 0.8, ISOLATED: 0.2},
     ),
@@ -397,7 +401,7 @@ class Objects:
     puddles: np.ndarray  # (q, 4): cx, cy, semi-axis x, semi-axis y (wet asphalt)
     texture: np.ndarray  # (k, 4): kx, ky, phase, amplitude of the asphalt texture
     arm_pivot: np.ndarray  # (3,)
-    arm_length: float = 3.4
+    arm_length: float = 4.0
     arm_radius: float = 0.05
     arm_period: float = 9.0
 
@@ -415,11 +419,11 @@ def build_objects(scene: Scene, rng: np.random.Generator) -> Objects:
     for x0 in np.arange(1.0, L - 4.0, 5.5):
         if rng.random() < 0.75:  # some bays are empty
             y_side = 1.0 if rng.random() < 0.6 else -1.0
-            y0 = y_side * 4.4 - 0.9
-            z0 = scene.road_z(np.array([x0]), np.array([y_side * 4.4]))[0]
+            y0 = y_side * 5.0 - 0.9  # parking bays just outside the clipped strip
+            z0 = scene.road_z(np.array([x0]), np.array([y_side * 5.0]))[0]
             cars.append([x0, y0, z0 + 0.25, x0 + 4.5, y0 + 1.8, z0 + 1.5])
     cars_arr = np.array(cars, dtype=float).reshape(-1, 6)
-    poles = np.column_stack([np.arange(3.0, L, 9.0), np.full(len(np.arange(3.0, L, 9.0)), -5.9)])
+    poles = np.column_stack([np.arange(3.0, L, 9.0), np.full(len(np.arange(3.0, L, 9.0)), -7.0)])
     n_pud = max(1, round(2 * L / 20))
     # the first puddle is the large one of cloud A, away from where the vehicle stops
     big = [rng.uniform(0.8, 0.9) * L, rng.uniform(2.0, 3.0), min(1.6, 0.3 * L), 1.0]
@@ -439,7 +443,8 @@ def build_objects(scene: Scene, rng: np.random.Generator) -> Objects:
         rng.uniform(0, 2 * np.pi, k),
         np.full(k, scene.roughness * np.sqrt(2.0 / k)),
     ])
-    pivot = np.array([min(2.0, 0.3 * L), scene.crop_y[0] - 0.2, 0.0])
+    # on the sidewalk; down, the arm reaches y = -2.7, clear of the vehicle in lane -1.5
+    pivot = np.array([min(2.0, 0.3 * L), -(scene.half_width + 0.2), 0.0])
     pivot[2] = scene.sidewalk_z(pivot[:1])[0] + 1.0
     return Objects(manholes, cars_arr, poles, puddles, texture, pivot)
 
@@ -608,7 +613,7 @@ def _outlier_clumps(cond: Condition, scene: Scene, obj: Objects, rng) -> list[tu
         n = max(3, round(16 * L / 20))
         for _ in range(n):
             kind = EXHAUST if rng.random() < 0.5 else WATER
-            c = np.array([rng.uniform(0.05, 0.95) * L, rng.uniform(-4.5, 4.5), 0.0])
+            c = np.array([rng.uniform(0.05, 0.95) * L, rng.uniform(-3.5, 3.5), 0.0])
             c[2] = scene.road_z(c[:1], c[1:2])[0] + rng.uniform(0.08, 0.9)
             clumps.append((kind, c, rng.uniform(0.12, 0.3, 3)))
     return clumps
