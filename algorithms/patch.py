@@ -16,8 +16,10 @@ from algorithms.stats import t_critical_value
 from algorithms.tiles import spatial_batches
 from worker.errors import ParameterError
 
-#: Patches fitted per batch: 65536 x 40 x 3 float64 = 63 MB of gathered coordinates.
+#: Patches fitted per batch (for k = 40: 65536 x 40 x 3 float64 = 63 MB of gathered coordinates);
+#: larger k gets proportionally smaller batches, so memory does not grow with k.
 BATCH_POINTS = 65536
+BATCH_NEIGHBOURS = BATCH_POINTS * 40
 #: Adjustments per patch at most, and the step size taken as convergence (||da||, ||a|| = 1).
 #: 1e-7 leaves T_i within ~1e-5 of its fully converged value (the critical value is ~3.6) and
 #: saves ~10 % of the time against 1e-8.
@@ -117,6 +119,7 @@ def detect_patch(
     tree = cKDTree(local)
     not_converged = 0
     iterations_sum = 0
+    batch_points = max(1, min(int(batch_points), BATCH_NEIGHBOURS // k))
     for batch in spatial_batches(local[:, :2], batch_points, tile_size):
         _, nbr = tree.query(local[batch], k=k, workers=-1)
         fit = fit_quadrics(
