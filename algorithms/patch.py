@@ -92,7 +92,8 @@ def detect_patch(
     -------
     DetectorResult
         score (n,) = T_i of eq. 31 of each point in its own patch, NaN where the patch did not
-        converge (or n < k); flagged = score > t(k - 9) critical value.
+        converge, its points are nearly collinear (no unique quadric, see
+        ``algorithms.quadric.COLLINEAR_RATIO``) or n < k; flagged = score > t(k - 9).
     """
     pts = check_xyz(xyz)
     var_sigma = check_sigma(sigma)
@@ -107,6 +108,7 @@ def detect_patch(
         "critical_value": crit,
         "points_tested": 0,
         "patches_not_converged": 0,
+        "patches_collinear": 0,
         "mean_iterations": None,
         "fit_max_iterations": FIT_MAX_ITER,
         "fit_tolerance": FIT_TOL,
@@ -118,6 +120,7 @@ def detect_patch(
     local = pts - pts.min(axis=0)  # exact enough before the per-patch centring
     tree = cKDTree(local)
     not_converged = 0
+    collinear = 0
     iterations_sum = 0
     batch_points = max(1, min(int(batch_points), BATCH_NEIGHBOURS // k))
     for batch in spatial_batches(local[:, :2], batch_points, tile_size):
@@ -127,11 +130,13 @@ def detect_patch(
         )
         score[batch] = np.where(fit.converged, fit.t_stat[:, 0], np.nan)
         not_converged += int((~fit.converged).sum())
+        collinear += int((~fit.converged & (fit.iterations == 0)).sum())
         iterations_sum += int(fit.iterations.sum())
         del nbr, fit
     tested = ~np.isnan(score)
     info["points_tested"] = int(tested.sum())
-    info["patches_not_converged"] = not_converged
+    info["patches_not_converged"] = not_converged  # collinear ones included
+    info["patches_collinear"] = collinear
     info["mean_iterations"] = iterations_sum / n
     flagged = np.zeros(n, dtype=bool)
     flagged[tested] = score[tested] > crit

@@ -84,7 +84,8 @@ class QuadricFit:
     iterations : (m,) int64
         Adjustments solved.
     converged : (m,) bool
-        ||da|| < tol reached within max_iter (False also for a singular system).
+        ||da|| < tol reached within max_iter (False also for a singular system, and for nearly
+        collinear points, which get ``iterations`` 0).
     """
 
     params: np.ndarray
@@ -403,6 +404,33 @@ def _adjust(
 ALPHA_MAX = 8.0
 
 
+#: Points whose spread across their main direction is below this fraction of the spread along it
+#: lie on a line as far as a quadric is concerned: every quadric through the line fits them, the
+#: adjustment has no unique solution, and the iteration wanders (a mobile scanner standing still
+#: repeats its scan line; 11 % of the simulated cloud A). Such fits stop at once, not converged.
+COLLINEAR_RATIO = 1e-3
+
+
+@njit(cache=True)
+def _nearly_collinear(xyz: np.ndarray, active: np.ndarray) -> bool:
+    """True when the second principal spread of the centred active rows is < COLLINEAR_RATIO x
+    the first (from the scatter matrix's trace and the sum of its 2 x 2 principal minors, which
+    is ~ lambda_1 lambda_2 when lambda_3 is the smallest)."""
+    sxx = syy = szz = sxy = sxz = syz = 0.0
+    for i in range(xyz.shape[0]):
+        if active[i]:
+            x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+            sxx += x * x
+            syy += y * y
+            szz += z * z
+            sxy += x * y
+            sxz += x * z
+            syz += y * z
+    trace = sxx + syy + szz
+    minors = (sxx * syy - sxy * sxy) + (sxx * szz - sxz * sxz) + (syy * szz - syz * syz)
+    return not minors > (COLLINEAR_RATIO * trace) ** 2
+
+
 @njit(cache=True)
 def _fit_one(
     xyz: np.ndarray,
@@ -421,7 +449,8 @@ def _fit_one(
     ``var`` (3,) is diag(D_ii). ``a`` (10,) receives the parameters; ``v_out`` and ``t_out`` (n,)
     receive v_i and T_i of the active rows (inactive rows are left untouched; with
     ``t_first_only`` only row 0 gets T). Returns (sigma0, iterations, converged); sigma0 is NaN
-    and converged False when the system is singular or has no redundancy.
+    and converged False when the system is singular or has no redundancy, and with 0 iterations
+    when the points are nearly collinear (:data:`COLLINEAR_RATIO`).
 
     The fixed-point iteration a <- a + da(a) converges linearly. With ``accelerate`` every pair
     of steps is extrapolated by SQUAREM (squared polynomial extrapolation); the fixed point, the
@@ -435,7 +464,7 @@ def _fit_one(
     for i in range(n):
         if active[i]:
             n_act += 1
-    if n_act <= DOF_LOSS:
+    if n_act <= DOF_LOSS or _nearly_collinear(xyz, active):
         return math.nan, 0, False
     mono = np.empty((n, _N_MONO))
     _monomials(xyz, active, mono)

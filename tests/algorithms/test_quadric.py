@@ -285,3 +285,14 @@ def test_degenerate_patch_is_not_converged_not_a_crash():
     pts = np.zeros((1, 12, 3))  # every point identical: no surface
     fit = fit_quadrics(pts, 0.005)
     assert not fit.converged[0]
+
+
+def test_nearly_collinear_points_stop_at_once():
+    # A scan line repeated by a scanner standing still: every quadric through the line fits.
+    rng = np.random.default_rng(12)
+    t = rng.uniform(-0.2, 0.2, (2, 40))
+    line = np.stack([t, 0.3 * t, 0.1 * t], axis=2) + rng.normal(0, 1e-5, (2, 40, 3))
+    line[1, :, 1] += rng.normal(0, 0.01, 40)  # the second is a thin strip, 5 % wide: fitted
+    fit = fit_quadrics(line, 0.005)
+    assert not fit.converged[0] and fit.iterations[0] == 0 and np.isnan(fit.t_stat[0]).all()
+    assert fit.iterations[1] > 0
