@@ -258,8 +258,15 @@ class PipelineParams(BaseModel):
 
     pipeline: list[Stage] | None = Field(
         None,
-        description="Stages in order. Default: temporal then patch (patch alone for a file "
-        "without gps_time).",
+        description="Stages in order. Default: chosen by the sensor profile (see 'profile'); "
+        "the paper's pipeline is [temporal, patch].",
+    )
+    profile: Literal["auto", "mobile", "spinning", "airborne"] = Field(
+        "auto",
+        description="Sensor kind whose default pipeline runs when 'pipeline' is not given: "
+        "spinning -> snow; airborne -> detached; mobile -> transient then height_field "
+        "(height_field alone without gps_time). 'auto' decides from the file's header and "
+        "point layout (worker/profiles.py); ignored when 'pipeline' is given.",
     )
     classify: bool = Field(
         True, description="Write noise_class to flagged points (and 2/1 for ground)."
@@ -282,7 +289,18 @@ class PipelineParams(BaseModel):
 
 
 def default_stages(has_gps_time: bool) -> list[_Stage]:
-    """The pipeline run when a job names none."""
+    """The mobile-mapping profile's default pipeline (``worker.profiles``; issue 5's detectors).
+
+    ``transient`` (moving objects; it needs gps_time) then ``height_field``; ``height_field``
+    alone for a file without usable gps_time.
+    """
+    if has_gps_time:
+        return [TransientParams(), HeightFieldParams()]
+    return [HeightFieldParams()]
+
+
+def paper_stages(has_gps_time: bool) -> list[_Stage]:
+    """The paper's pipeline (Table 5): temporal then patch; patch alone without gps_time."""
     if has_gps_time:
         return [TemporalParams(), PatchParams()]
     return [PatchParams()]

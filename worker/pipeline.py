@@ -16,7 +16,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,7 +30,7 @@ from worker import lasio
 from worker.detectors import GroundResult, get_detector
 from worker.errors import ParameterError
 from worker.lasio import Cloud, LasFacts
-from worker.params import OUTLIER_DETECTOR_BITS, PipelineParams, default_stages
+from worker.params import OUTLIER_DETECTOR_BITS, PipelineParams
 
 Progress = Callable[[float, str], None]
 
@@ -140,16 +140,40 @@ def usable_gps_time(gps_time: np.ndarray | None) -> tuple[bool, str]:
     return True, "the file has gps_time"
 
 
-def resolve_stages(params: PipelineParams, gps_time: np.ndarray | None) -> tuple[list, dict]:
-    """The stages to run and a statistics note on where they came from."""
+def resolve_stages(
+    params: PipelineParams, gps_time: np.ndarray | None,
+    facts: Mapping[str, Any] | None = None,
+) -> tuple[list, dict]:
+    """The stages to run and a statistics note on where they came from.
+
+    Without a named pipeline the profile decides (``params.profile``, or for ``auto``
+    :func:`worker.profiles.choose_profile` on ``facts``: the file's header facts, or those of
+    the cloud; without facts ``auto`` means mobile). The note then holds ``profile``,
+    ``profile_source`` (given / auto), ``profile_reason`` and the facts used.
+    """
+    from worker.profiles import profile_evidence, profile_stages
+
     if params.pipeline is not None:
         stages = list(params.pipeline)
-        note = {"pipeline_source": "given"}
+        note: dict[str, Any] = {"pipeline_source": "given"}
     else:
         ok, why = usable_gps_time(gps_time)
-        stages = default_stages(ok)
+        evidence = profile_evidence(facts or {})
+        if params.profile == "auto":
+            profile, source = evidence["profile"], "auto"
+            reason = evidence["reason"] if facts else "no file facts given: mobile"
+        else:
+            profile, source, reason = params.profile, "given", "named by the job"
+        stages = profile_stages(profile, ok)
         names = " then ".join(s.detector for s in stages)
-        note = {"pipeline_source": "default", "default_reason": f"{why}: {names}"}
+        note = {
+            "pipeline_source": "default",
+            "profile": profile,
+            "profile_source": source,
+            "profile_reason": reason,
+            "profile_facts": {k: v for k, v in evidence.items() if k not in ("profile", "reason")},
+            "default_reason": f"{profile} profile, {why}: {names}",
+        }
     seen: set[str] = set()
     for stage in stages:
         spec = get_detector(stage.detector)
@@ -179,19 +203,25 @@ def run_pipeline(
     params: PipelineParams,
     progress: Progress | None = None,
     *,
-    facts: LasFacts | None = None,
+    facts: LasFacts | Mapping[str, Any] | None = None,
     progress_span: tuple[float, float] = (0.0, 1.0),
 ) -> PipelineResult:
     """Run the stages of ``params`` on ``cloud``.
 
-    Statistics: ``input`` (file facts when given), ``pipeline_source`` (and ``default_reason``),
+    ``facts``: the file's header facts (``LasFacts`` or its dict), used to choose the profile
+    of a job that names no pipeline; without them the cloud's own (:func:`cloud_facts`).
+
+    Statistics: ``input`` (file facts when given), ``pipeline_source`` (for a default pipeline
+    also ``profile``, ``profile_source``, ``profile_reason``, ``profile_facts`` and
+    ``default_reason``),
     ``stages`` (per stage: detector, params as resolved, the detector's ``info`` with sigma
     estimates, points_in, points_tested, points_flagged, critical_value, seconds and, with
     ``reference_classes``, ``confusion`` in the layout of the paper's Tables 2-5 or
     ``ground_scores`` for ``ground``), and ``overall`` (points, flagged, per-bit counts, confusion).
     """
     n = len(cloud)
-    stages, note = resolve_stages(params, cloud.gps_time)
+    fact_dict = facts.to_dict() if isinstance(facts, LasFacts) else facts
+    stages, note = resolve_stages(params, cloud.gps_time, fact_dict or cloud_facts(cloud))
     flags = np.zeros(n, dtype=np.uint8)
     scores: dict[str, np.ndarray] = {}
     classes = cloud.classification.astype(np.uint8, copy=True) if params.classify else None
@@ -246,7 +276,7 @@ def run_pipeline(
     if classes is not None:
         classes[flags != 0] = params.noise_class
     statistics: dict[str, Any] = {
-        "input": facts.to_dict() if facts is not None else {"points": n},
+        "input": fact_dict if fact_dict is not None else {"points": n},
         **note,
         "classify": params.classify,
         "noise_class": params.noise_class,
@@ -255,6 +285,23 @@ def run_pipeline(
         "overall": _overall(flags, noise_truth),
     }
     return PipelineResult(flags, scores, classes, _jsonable(statistics))
+
+
+def cloud_facts(cloud: Cloud) -> dict[str, Any]:
+    """Profile facts of an in-memory cloud: points, file-coordinate bounds, has_gps_time.
+
+    A cloud does not know the file's extra dimensions, so ``auto`` never picks ``spinning``
+    from these alone (pass the file's facts, or name the profile).
+    """
+    n = len(cloud)
+    if n:
+        lo = (cloud.xyz.min(axis=0) + cloud.origin).tolist()
+        hi = (cloud.xyz.max(axis=0) + cloud.origin).tolist()
+        bounds: dict[str, list[float]] | None = {"min": lo, "max": hi}
+    else:
+        bounds = None
+    return {"points": n, "bounds": bounds, "extra_dimensions": [],
+            "has_gps_time": cloud.gps_time is not None}
 
 
 def _outlier_stage(

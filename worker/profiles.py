@@ -14,8 +14,12 @@ file's header and point layout, never parameters tuned per file. Three kinds are
     bounding box (airborne tiles have 0.05-50; a mobile-mapping strip has thousands near the
     vehicle). Default pipeline: ``detached`` (small clusters outside the surface's envelope).
 ``mobile``
-    Everything else (mobile mapping, terrestrial): the paper's pipeline, ``temporal`` then
-    ``patch`` (``patch`` alone without gps_time), as :func:`worker.params.default_stages`.
+    Everything else (mobile mapping, terrestrial): ``transient`` (moving objects; with a
+    trajectory file it also uses free-space evidence) then ``height_field`` (``height_field``
+    alone without gps_time), as :func:`worker.params.default_stages`. The paper's ``temporal``
+    then ``patch`` stays available by naming it (:func:`worker.params.paper_stages`).
+
+A job can also name the profile (``PipelineParams.profile``) instead of ``auto``.
 
 The facts are those the statistics already report for the input (``extra_dimensions``,
 ``bounds``, ``points``, ``has_gps_time``), so the choice can be printed beside the result.
@@ -65,6 +69,43 @@ def choose_profile(facts: Mapping[str, Any]) -> str:
         if area > 0 and points / area < AIRBORNE_MAX_DENSITY:
             return "airborne"
     return "mobile"
+
+
+def profile_evidence(facts: Mapping[str, Any]) -> dict[str, Any]:
+    """The facts :func:`choose_profile` used, and its decision in words (for the statistics).
+
+    Returns ``{"profile", "reason", "channel_dimensions", "sensor_origin_inside_xy_bounds",
+    "points_per_m2"}`` (the last two None when the bounds are unknown).
+    """
+    profile = choose_profile(facts)
+    names = sorted({str(n).lower() for n in facts.get("extra_dimensions") or []}
+                   & CHANNEL_DIMENSIONS)
+    bounds = facts.get("bounds") or {}
+    lo, hi = bounds.get("min"), bounds.get("max")
+    inside = density = None
+    if lo is not None and hi is not None:
+        inside = bool(lo[0] <= 0.0 <= hi[0] and lo[1] <= 0.0 <= hi[1])
+        area = max(float(hi[0]) - float(lo[0]), 0.0) * max(float(hi[1]) - float(lo[1]), 0.0)
+        density = round(int(facts.get("points") or 0) / area, 3) if area > 0 else None
+    if profile == "spinning":
+        reason = (f"channel dimension {', '.join(names)} and the sensor origin (0, 0, 0) "
+                  f"inside the XY bounds")
+    elif profile == "airborne":
+        reason = f"{density} points per m2 of the XY bounds (< {AIRBORNE_MAX_DENSITY:g})"
+    else:
+        why = []
+        if names:
+            why.append(f"channel dimension {', '.join(names)} but the sensor origin is outside "
+                       f"the XY bounds")
+        else:
+            why.append("no channel dimension")
+        if density is None:
+            why.append("XY bounds unknown or flat")
+        else:
+            why.append(f"{density} points per m2 (>= {AIRBORNE_MAX_DENSITY:g})")
+        reason = ", ".join(why)
+    return {"profile": profile, "reason": reason, "channel_dimensions": names,
+            "sensor_origin_inside_xy_bounds": inside, "points_per_m2": density}
 
 
 def profile_stages(profile: str, has_gps_time: bool) -> list:

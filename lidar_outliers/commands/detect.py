@@ -24,6 +24,7 @@ _PIPELINE_FLAGS = {
     "classify": "--no-classify",
     "noise_class": "--noise-class",
     "reference_classes": "--reference-classes",
+    "profile": "--profile",
 }
 
 
@@ -146,6 +147,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="input classes taken as truth (e.g. 7 18 for noise, 2 for ground): adds confusion "
         "counts to the statistics",
     )
+    parser.add_argument(
+        "--profile", choices=["auto", "mobile", "spinning", "airborne"],
+        help="sensor kind whose default pipeline runs when no --detector is given (default auto: "
+        "from the file's header and point layout; spinning -> snow, airborne -> detached, "
+        "mobile -> transient then height_field)",
+    )
     fmt = parser.add_mutually_exclusive_group()
     fmt.add_argument("--laz", dest="laz", action="store_true", default=None, help="write LAZ")
     fmt.add_argument("--las", dest="laz", action="store_false", help="write uncompressed LAS")
@@ -174,6 +181,8 @@ def build_params(args: argparse.Namespace) -> PipelineParams:
         data["noise_class"] = args.noise_class
     if args.reference_classes is not None:
         data["reference_classes"] = args.reference_classes
+    if args.profile is not None:
+        data["profile"] = args.profile
     try:
         return PipelineParams.model_validate(data)
     except ValidationError as exc:

@@ -172,7 +172,7 @@ def test_detectors_listing_text_and_json(capsys):
     assert data["detectors"]["temporal"]["outlier_flags_bit"] == 1
     assert data["detectors"]["ground"]["outlier_flags_bit"] is None
     assert {p["name"] for p in data["pipeline"]} == {
-        "pipeline", "classify", "noise_class", "reference_classes"}
+        "pipeline", "profile", "classify", "noise_class", "reference_classes"}
 
 
 def test_installed_entry_point_in_subprocess(tmp_path, cloud_file):

@@ -11,7 +11,7 @@ import pytest
 from tests.worker.conftest import scan_line_cloud, write_las
 from worker import lasio
 from worker.errors import ParameterError
-from worker.params import PipelineParams
+from worker.params import OUTLIER_DETECTOR_BITS, PipelineParams
 from worker.pipeline import (
     parse_pipeline_params,
     process_file,
@@ -136,26 +136,71 @@ def test_ground_scores_with_reference_class_2(spiky):
 def test_default_pipeline_and_reason():
     t = np.linspace(0, 1, 50)
     stages, note = resolve_stages(PipelineParams(), t)
-    assert [s.detector for s in stages] == ["temporal", "patch"]
-    assert note["pipeline_source"] == "default"
+    assert [s.detector for s in stages] == ["transient", "height_field"]
+    assert note["pipeline_source"] == "default" and note["profile"] == "mobile"
+    assert note["profile_source"] == "auto"
     for gps, why in ((None, "no gps_time"), (np.zeros(50), "same"), (np.full(3, np.nan), "NaN")):
         stages, note = resolve_stages(PipelineParams(), gps)
-        assert [s.detector for s in stages] == ["patch"]
-        assert why in note["default_reason"] and "patch" in note["default_reason"]
+        assert [s.detector for s in stages] == ["height_field"]
+        assert why in note["default_reason"] and "height_field" in note["default_reason"]
         assert usable_gps_time(gps)[0] is False
     stages, note = resolve_stages(PipelineParams(pipeline=[{"detector": "section"}]), None)
     assert note == {"pipeline_source": "given"}
+    # A named profile wins over the facts; the paper's pipeline runs when named.
+    stages, note = resolve_stages(PipelineParams(profile="airborne"), t)
+    assert [s.detector for s in stages] == ["detached"] and note["profile_source"] == "given"
+    stages, _ = resolve_stages(parse_pipeline_params(
+        {"pipeline": [{"detector": "temporal"}, {"detector": "patch"}]}), t)
+    assert [s.detector for s in stages] == ["temporal", "patch"]
 
 
 def test_default_pipeline_end_to_end_without_gps_time(tmp_path, rng):
-    xy = rng.uniform(0, 3, (300, 2))
+    # 300 points on 1.5 m x 1.5 m: 133 per m2, dense enough to be mobile, not airborne.
+    xy = rng.uniform(0, 1.5, (300, 2))
     xyz = np.column_stack([xy, rng.normal(0, 0.003, 300)])
     src = write_las(tmp_path / "pf0.las", xyz, point_format=0)
     stats = process_file(src, tmp_path / "out.las")
-    assert [s["detector"] for s in stats["stages"]] == ["patch"]
-    assert "no gps_time" in stats["default_reason"]
+    assert [s["detector"] for s in stats["stages"]] == ["height_field"]
+    assert "no gps_time" in stats["default_reason"] and stats["profile"] == "mobile"
     assert set(laspy.read(tmp_path / "out.las").point_format.extra_dimension_names) == {
-        "outlier_flags", "patch_score"}
+        "outlier_flags", "height_field_score"}
+
+
+def _profile_cloud(xyz: np.ndarray, t: np.ndarray | None, rng) -> lasio.Cloud:
+    cloud = _cloud(xyz, t)
+    cloud.intensity = rng.integers(0, 200, len(xyz)).astype(np.uint16)
+    return cloud
+
+
+def test_default_profile_chosen_by_run_pipeline(rng):
+    """Each profile's stages run through run_pipeline; the statistics name the facts used."""
+    # Mobile: a dense 4 m x 4 m strip with gps_time.
+    n = 4000
+    xyz = np.column_stack([rng.uniform(0, 4, (n, 2)), rng.normal(0, 0.003, n)])
+    t = np.sort(rng.uniform(0, 10, n))
+    res = run_pipeline(_profile_cloud(xyz, t, rng), PipelineParams())
+    st = res.statistics
+    assert [s["detector"] for s in st["stages"]] == ["transient", "height_field"]
+    assert st["profile"] == "mobile" and st["profile_facts"]["points_per_m2"] > 50
+    assert set(res.scores) == {"transient", "height_field"}
+    # Airborne: the same number of points over 200 m x 200 m (0.1 per m2).
+    sparse = np.column_stack([rng.uniform(0, 200, (n, 2)), rng.normal(0, 0.05, n)])
+    st = run_pipeline(_profile_cloud(sparse, t, rng), PipelineParams()).statistics
+    assert [s["detector"] for s in st["stages"]] == ["detached"]
+    assert st["profile"] == "airborne" and "points per m2" in st["profile_reason"]
+    # Spinning: a sweep around the sensor origin, with the file's ring dimension in the facts.
+    az = rng.uniform(0, 2 * np.pi, n)
+    rr = rng.uniform(3, 30, n)
+    sweep = np.column_stack([rr * np.cos(az), rr * np.sin(az), rng.normal(-1.7, 0.01, n)])
+    facts = {"points": n, "extra_dimensions": ["ring"], "has_gps_time": True,
+             "bounds": {"min": sweep.min(axis=0).tolist(), "max": sweep.max(axis=0).tolist()}}
+    st = run_pipeline(_profile_cloud(sweep, t, rng), PipelineParams(), facts=facts).statistics
+    assert [s["detector"] for s in st["stages"]] == ["snow"]
+    assert st["profile"] == "spinning" and st["profile_facts"]["channel_dimensions"] == ["ring"]
+    by_bit = st["overall"]["flagged_by_bit"]
+    assert set(by_bit) == set(OUTLIER_DETECTOR_BITS)  # every registered bit, not the paper's 3
+    assert by_bit["snow"] == st["stages"][0]["points_flagged"]
+
 
 
 def test_far_coordinates_and_late_gps_time_give_the_same_flags(tmp_path, spiky):

@@ -46,13 +46,14 @@ def test_ring_without_the_sensor_origin_is_not_spinning(tmp_path):
     assert choose_profile(facts) == "mobile"  # 200 points per m2: dense
 
 
-def test_dense_strip_is_mobile_and_keeps_the_paper_pipeline(tmp_path):
+def test_dense_strip_is_mobile_transient_then_height_field(tmp_path):
     rng = np.random.default_rng(2)
     xyz = rng.uniform(0, 5, (20000, 3)) + np.array([5e5, 5e6, 0.0])
     facts = inspect_las(write_las(tmp_path / "strip.las", xyz, ring=False)).to_dict()
     assert choose_profile(facts) == "mobile"
     assert [s.detector for s in default_pipeline(facts)[1]] == \
-        [s.detector for s in default_stages(facts["has_gps_time"])]
+        [s.detector for s in default_stages(facts["has_gps_time"])] == \
+        ["transient", "height_field"]
 
 
 @pytest.mark.skipif(not AIRBORNE.exists(), reason="no copy of the airborne file")
