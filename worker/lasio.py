@@ -92,6 +92,10 @@ class Cloud:
     point_source_id, classification, return_number, number_of_returns : (n,) integer arrays
     intensity : (n,) uint16 or None
         Pulse return strength (the ``snow`` detector uses it); None when not read.
+    trajectory : (m, 4) float64 or None
+        Optional platform path (``worker.trajectory``): time, then x, y, z in the same local
+        frame as ``xyz`` (file coordinates minus ``origin``); the ``transient`` detector adds
+        free-space evidence with it. A subset keeps the whole trajectory.
     """
 
     xyz: np.ndarray
@@ -102,6 +106,7 @@ class Cloud:
     return_number: np.ndarray
     number_of_returns: np.ndarray
     intensity: np.ndarray | None = None
+    trajectory: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -117,6 +122,7 @@ class Cloud:
             return_number=self.return_number[index],
             number_of_returns=self.number_of_returns[index],
             intensity=None if self.intensity is None else self.intensity[index],
+            trajectory=self.trajectory,
         )
 
 

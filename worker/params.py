@@ -219,6 +219,26 @@ class TransientParams(_Stage):
         description="Seconds: a neighbour recorded this much earlier or later makes a point "
         "persistent (seen again by the other scanner or on another pass).",
     )
+    free_space_radius: float = Field(
+        0.006, gt=0.0, le=10.0,
+        description="With a trajectory file: metres a beam must pass within a point to see "
+        "through it (free-space evidence).",
+    )
+    free_space_margin: float = Field(
+        0.08, ge=0.0, le=100.0,
+        description="With a trajectory file: metres a beam must end beyond a point to count.",
+    )
+    free_space_min_rays: int = Field(
+        1, ge=1, le=1000,
+        description="With a trajectory file: beams that saw through a point to flag it.",
+    )
+    lever_arms: list[tuple[int, float, float, float]] = Field(
+        [(1, -0.6, 0.45, 0.0), (2, -0.6, -0.45, 0.0)],
+        description="With a trajectory file: [point_source_id, forward, left, up] metres of "
+        "each scanner from the trajectory's reference point in the vehicle frame (heading from "
+        "the trajectory's motion). Default: the simulator's two scanners (trajectory = roof "
+        "point at scanner height). Scanners not listed sit at the reference point.",
+    )
 
 
 def _require_positive(value: float | str, name: str) -> None:

@@ -377,8 +377,13 @@ def process_file(
     stats_path: str | os.PathLike[str] | None = None,
     chunk_points: int = lasio.DEFAULT_CHUNK_POINTS,
     streaming: bool | None = None,
+    trajectory: str | os.PathLike[str] | np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Validate, read, run the pipeline, write the flagged cloud; return the statistics.
+
+    ``trajectory``: an optional trajectory file (``worker.trajectory``: lines of ``time x y z``
+    in the cloud's coordinates) or its (m, 4) array; the ``transient`` detector then also flags
+    points other beams saw through. The statistics' ``trajectory`` says whether it was used.
 
     ``laz=None`` writes LAZ when the input is LAZ. ``progress(fraction, message)`` is called while
     reading, per stage and while writing; whatever it raises propagates unchanged (the service
@@ -400,6 +405,7 @@ def process_file(
         progress(0.0, f"checking {in_path.name}")
     facts = lasio.inspect_las(in_path)
     check_noise_class(params, facts.point_format)
+    traj, traj_info = _load_trajectory(trajectory)
     compress = facts.compressed if laz is None else laz
     if laz is None and facts.point_format in lasio.LAZ_LOSSY_FORMATS:
         compress = False  # lazrs would change the waveform fields; keep the data, write LAS
@@ -412,10 +418,12 @@ def process_file(
         )
         if stats is not None:
             stats["seconds"] = {"total": round(time.perf_counter() - t0, 4)}
-            return _finish(stats, out_path, compress, stats_path, progress)
+            return _finish(stats, out_path, compress, stats_path, progress, traj_info)
     cloud = lasio.read_cloud(
         in_path, chunk_points=chunk_points, progress=progress, progress_span=(0.0, _READ)
     )
+    if traj is not None:
+        cloud.trajectory = traj - np.r_[0.0, cloud.origin]  # into the cloud's local frame
     t_read = time.perf_counter()
     result = run_pipeline(
         cloud, params, progress, facts=facts, progress_span=(_READ, _DETECT)
@@ -438,13 +446,43 @@ def process_file(
         "write": round(t_write - t_detect, 4),
         "total": round(t_write - t0, 4),
     }
-    return _finish(stats, out_path, compress, stats_path, progress)
+    return _finish(stats, out_path, compress, stats_path, progress, traj_info)
+
+
+def _load_trajectory(
+    trajectory: str | os.PathLike[str] | np.ndarray | None,
+) -> tuple[np.ndarray | None, dict[str, Any] | None]:
+    """(m, 4) trajectory in file coordinates and its facts, or (None, None)."""
+    from worker.trajectory import check_trajectory, describe_trajectory, read_trajectory
+
+    if trajectory is None:
+        return None, None
+    if isinstance(trajectory, np.ndarray):
+        traj = check_trajectory(trajectory, "array")
+        return traj, describe_trajectory(traj, "array")
+    traj = read_trajectory(trajectory)
+    return traj, describe_trajectory(traj, Path(trajectory).name)
+
+
+def _trajectory_use(stats: dict[str, Any], info: dict[str, Any]) -> dict[str, Any]:
+    """The trajectory's facts plus whether a stage used it."""
+    info = dict(info)
+    used = [s for s in stats.get("stages", []) if s["detector"] == "transient" and "info" in s]
+    if used:
+        info["used_by"] = "transient"
+    else:
+        info["used_by"] = None
+        info["note"] = "no transient stage ran (it needs gps_time): the trajectory was not used"
+    return info
 
 
 def _finish(
     stats: dict[str, Any], out_path: Path, compress: bool,
     stats_path: str | os.PathLike[str] | None, progress: Progress | None,
+    traj_info: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
+    if traj_info is not None:
+        stats["trajectory"] = _jsonable(_trajectory_use(stats, traj_info))
     detectors = [s["detector"] for s in stats["stages"] if s["detector"] in OUTLIER_DETECTOR_BITS]
     stats["output"] = {
         "name": out_path.name,

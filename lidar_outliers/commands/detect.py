@@ -136,6 +136,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--stats", metavar="FILE", help="write the statistics JSON here")
     parser.add_argument(
+        "--trajectory", metavar="FILE",
+        help="the platform's trajectory: text lines 'time x y z' (same time base and "
+        "coordinates as the cloud; `lidar-outliers simulate` writes one beside the cloud). The "
+        "transient detector then also flags points other beams saw through (see its "
+        "--lever-arms)",
+    )
+    parser.add_argument(
         "--no-classify", dest="classify", action="store_false", default=None,
         help="leave the classification untouched",
     )
@@ -174,7 +181,8 @@ def build_params(args: argparse.Namespace) -> PipelineParams:
             raise ParameterError(f"--params {args.params} must hold a JSON object")
     stages = args.extra or []
     if stages:
-        data["pipeline"] = [{"detector": name, **values} for name, values in stages]
+        data["pipeline"] = [{"detector": name, **{k: _option_value(v) for k, v in values.items()}}
+                            for name, values in stages]
     if args.classify is False:
         data["classify"] = False
     if args.noise_class is not None:
@@ -187,6 +195,17 @@ def build_params(args: argparse.Namespace) -> PipelineParams:
         return PipelineParams.model_validate(data)
     except ValidationError as exc:
         raise ParameterError(_message(exc, args, stages)) from None
+
+
+def _option_value(text: str) -> Any:
+    """A list option (``--lever-arms '[[1, -0.6, 0.45, 0]]'``, ``--origin '[0, 0, 0]'``) as
+    JSON; any other value stays text for pydantic to convert."""
+    if text.lstrip().startswith("["):
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError:
+            pass
+    return text
 
 
 def _message(exc: ValidationError, args: argparse.Namespace, stages: list) -> str:
@@ -218,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
         laz = out.suffix.lower() == ".laz"
     with _progress_bar(enabled=not args.quiet and sys.stderr.isatty()) as progress:
         stats = process_file(args.input, out, params, laz=laz, progress=progress,
-                             stats_path=args.stats)
+                             stats_path=args.stats, trajectory=args.trajectory)
     if not args.stats:
         json.dump(stats, sys.stdout, indent=2)
         sys.stdout.write("\n")
