@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from service.problems import Problem
-from service.processes import CLOUD_INPUT, preflight, resolve_inputs
+from service.processes import CLOUD_INPUT, TRAJECTORY_INPUT, preflight, resolve_inputs
 from service.settings import Settings
 from service.store import ACTIVE, FINAL, Job, JobStatus, Store, Upload, User
 from worker import tasks
@@ -132,24 +132,34 @@ class JobService:
                           '{"n1": 5}', errors=[{"parameter": "inputs", "message": "not an object"}])
         inputs = dict(inputs)
         cloud = inputs.pop(CLOUD_INPUT, None)
+        if TRAJECTORY_INPUT in inputs:
+            raise Problem(422, "invalid-parameter", "trajectory: send the trajectory file as "
+                          "the multipart part `trajectory` beside `file`, not in inputs",
+                          errors=[{"parameter": "trajectory", "message": "not an input value"}])
         params = resolve_inputs(process_id, inputs)
         return params.model_dump(mode="json"), cloud
 
     def submit(
         self, user: User, process_id: str, params: dict[str, Any], source: Path, name: str,
-        *, move: bool,
+        *, move: bool, trajectory: Path | None = None, trajectory_name: str = "trajectory.txt",
     ) -> Job:
         """Create a job from a validated file and parameters and queue it.
 
         ``move``: the source is a fresh upload part (renamed into the job folder); otherwise it
-        is a stored upload (hard-linked, so the upload can serve further jobs)."""
+        is a stored upload (hard-linked, so the upload can serve further jobs). ``trajectory``:
+        an optional received trajectory part, checked (422 when unusable) and moved into the
+        job folder; its facts appear in the job's ``input_file``."""
         try:
             active = self.check_active_limit(user)
             facts = las_facts(source, name)
             preflight(PipelineParams.model_validate(params), int(facts.get("point_format", 0)))
+            if trajectory is not None:
+                facts["trajectory"] = trajectory_facts(trajectory, trajectory_name)
         except BaseException:
             if move:  # a refused upload is not kept
                 source.unlink(missing_ok=True)
+            if trajectory is not None:
+                trajectory.unlink(missing_ok=True)
             raise
         job_id = os.urandom(16).hex()
         laz = bool(facts.get("compressed"))
@@ -162,8 +172,13 @@ class JobService:
                 os.link(source, target)
             except OSError:
                 shutil.copyfile(source, target)
+        stored = target.stat().st_size
+        if trajectory is not None:
+            traj_target = tasks.trajectory_path(self.settings, job_id)
+            os.replace(trajectory, traj_target)
+            stored += traj_target.stat().st_size
         job = self.store.create_job(user.id, process_id, params, facts, laz,
-                                    stored_bytes=target.stat().st_size, job_id=job_id)
+                                    stored_bytes=stored, job_id=job_id)
         try:
             # a user's n-th active job waits behind every other user's earlier ones
             self.enqueue(job.id, min(active, 9))
@@ -263,6 +278,18 @@ class JobService:
             if datetime.fromtimestamp(part.stat().st_mtime, UTC) < now - timedelta(days=1):
                 part.unlink(missing_ok=True)
         return removed
+
+
+def trajectory_facts(path: Path, name: str) -> dict[str, Any]:
+    """Samples and time span of a received trajectory; 422 naming the line when unusable."""
+    from worker.trajectory import describe_trajectory, read_trajectory
+
+    try:
+        traj = read_trajectory(path, name)
+    except LidarOutliersError as exc:
+        raise Problem(422, "invalid-parameter", str(exc),
+                      errors=[{"parameter": "trajectory", "message": str(exc)}]) from None
+    return describe_trajectory(traj, name)
 
 
 def las_facts_or_remove(part: Path, name: str) -> dict[str, Any]:

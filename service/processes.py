@@ -20,6 +20,8 @@ PIPELINE = "pipeline"
 PIPELINE_LEVEL = ("classify", "noise_class", "reference_classes")
 #: The input that names the cloud in a JSON execute request; not a parameter.
 CLOUD_INPUT = "cloud"
+#: The optional trajectory file (multipart part of this name); not a parameter.
+TRAJECTORY_INPUT = "trajectory"
 
 
 def stage_models() -> dict[str, type[BaseModel]]:
@@ -120,6 +122,16 @@ def describe(process_id: str, base_url: str = "") -> dict[str, Any]:
             "schema": {"type": "string", "contentMediaType": "application/vnd.laszip",
                        "contentEncoding": "binary"},
         }
+    }
+    inputs[TRAJECTORY_INPUT] = {
+        "title": "Trajectory",
+        "description": "Optional: the platform's path as text lines 'time x y z' (same time base "
+        "and coordinates as the cloud; `lidar-outliers simulate` writes one) in multipart part "
+        "`trajectory` beside `file`. The transient detector then also flags points other beams "
+        "saw through (see its lever_arms).",
+        "minOccurs": 0,
+        "maxOccurs": 1,
+        "schema": {"type": "string", "contentMediaType": "text/plain"},
     }
     for name, prop in schema.get("properties", {}).items():
         prop = dict(prop)

@@ -30,6 +30,15 @@ class Received:
     filename: str
     size: int
     fields: dict[str, str]
+    #: The optional part ``trajectory`` (a text file), on disk like ``file``.
+    trajectory: Path | None = None
+    trajectory_name: str = ""
+
+    def remove(self) -> None:
+        """Delete the received parts (a refused request keeps nothing)."""
+        for path in (self.path, self.trajectory):
+            if path is not None:
+                path.unlink(missing_ok=True)
 
 
 def too_large(limit: int, quota: bool) -> Problem:
@@ -93,7 +102,8 @@ async def receive_raw(
 
 
 class _FormReader:
-    """Callbacks for python-multipart: the part named ``file`` goes to disk, others to memory."""
+    """Callbacks for python-multipart: parts ``file`` and ``trajectory`` go to disk, others to
+    memory. Their sizes together count against the limit."""
 
     def __init__(self, directory: Path, limit: int, quota: bool) -> None:
         self.directory = directory
@@ -103,6 +113,9 @@ class _FormReader:
         self.filename = ""
         self.size = 0
         self.fields: dict[str, str] = {}
+        self.trajectory: Path | None = None
+        self.trajectory_name = ""
+        self.trajectory_size = 0
         self._out: BinaryIO | None = None
         self._name = ""
         self._buffer = bytearray()
@@ -142,11 +155,21 @@ class _FormReader:
             self.filename = options.get(b"filename", b"cloud.las").decode("utf-8", "replace")
             self.path = part_path(self.directory)
             self._out = open(self.path, "wb")  # noqa: SIM115 - closed in part_end / cleanup
+        elif self._name == "trajectory":
+            if self.trajectory is not None:
+                raise Problem(400, "invalid-request", "send at most one part named `trajectory`")
+            self.trajectory_name = options.get(b"filename", b"trajectory.txt").decode(
+                "utf-8", "replace")
+            self.trajectory = part_path(self.directory)
+            self._out = open(self.trajectory, "wb")  # noqa: SIM115 - closed in part_end
 
     def part_data(self, data: bytes, start: int, end: int) -> None:
         if self._out is not None:
-            self.size += end - start
-            if self.size > self.limit:
+            if self._name == "trajectory":
+                self.trajectory_size += end - start
+            else:
+                self.size += end - start
+            if self.size + self.trajectory_size > self.limit:
                 raise too_large(self.limit, self.quota)
             self._out.write(data[start:end])
         else:
@@ -166,8 +189,9 @@ class _FormReader:
         if self._out is not None:
             self._out.close()
             self._out = None
-        if self.path is not None:
-            self.path.unlink(missing_ok=True)
+        for path in (self.path, self.trajectory):
+            if path is not None:
+                path.unlink(missing_ok=True)
 
 
 async def receive_multipart(
@@ -199,5 +223,10 @@ async def receive_multipart(
         raise Problem(400, "invalid-request",
                       "no file: send the LAS/LAZ cloud in a multipart part named `file` "
                       "(curl -F file=@cloud.las)")
+    if reader.trajectory is not None and reader.trajectory_size == 0:
+        reader.cleanup()
+        raise Problem(422, "invalid-parameter", "trajectory: the part `trajectory` is empty",
+                      errors=[{"parameter": "trajectory", "message": "empty"}])
     return Received(path=reader.path, filename=os.path.basename(reader.filename) or "cloud.las",
-                    size=reader.size, fields=reader.fields)
+                    size=reader.size, fields=reader.fields, trajectory=reader.trajectory,
+                    trajectory_name=os.path.basename(reader.trajectory_name) or "trajectory.txt")

@@ -43,6 +43,11 @@ def statistics_path(settings: Settings, job_id: str) -> Path:
     return job_dir(settings, job_id) / "statistics.json"
 
 
+def trajectory_path(settings: Settings, job_id: str) -> Path:
+    """The job's optional trajectory file (multipart part ``trajectory``)."""
+    return job_dir(settings, job_id) / "trajectory.txt"
+
+
 def folder_bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 
@@ -97,15 +102,19 @@ def execute_job(settings: Settings, store: Store, job_id: str) -> JobStatus | No
         from worker.pipeline import process_file  # heavy import (numba) only in the worker
 
         params = PipelineParams.model_validate(job.inputs)
+        trajectory = trajectory_path(settings, job_id)
         stats = process_file(
             input_path(settings, job_id, job.laz),
             result_path(settings, job_id, job.laz),
             params,
             laz=job.laz,
             progress=Progress(store, job_id),
+            trajectory=trajectory if trajectory.exists() else None,
         )
         if isinstance(stats.get("input"), dict):  # the user's file name, not input.las
             stats["input"]["name"] = job.facts.get("name", stats["input"].get("name"))
+        if isinstance(stats.get("trajectory"), dict) and "trajectory" in job.facts:
+            stats["trajectory"]["name"] = job.facts["trajectory"].get("name")
         _write_json(statistics_path(settings, job_id), stats)
     except CancelledError:
         shutil.rmtree(folder, ignore_errors=True)

@@ -34,6 +34,9 @@ EXECUTE_BODY = {
                         "inputs": {"type": "string",
                                    "description": "The process inputs as JSON, e.g. "
                                    '{"n1": 5}; GET /processes/{id} gives the schema.'},
+                        "trajectory": {"type": "string", "format": "binary",
+                                       "description": "Optional trajectory: text lines "
+                                       "'time x y z' (used by the transient detector)."},
                     },
                 }
             },
@@ -93,10 +96,12 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
                 raise Problem(422, "invalid-parameter", "cloud: give the file in part `file` "
                               "or an href in a JSON request, not both")
         except BaseException:
-            received.path.unlink(missing_ok=True)
+            received.remove()
             raise
         job = await run_in_threadpool(service.submit, user, process_id, params, received.path,
-                                      received.filename, move=True)
+                                      received.filename, move=True,
+                                      trajectory=received.trajectory,
+                                      trajectory_name=received.trajectory_name)
     elif content_type.startswith("application/json"):
         body = await request.body()
         if len(body) > MAX_JSON_BYTES:
