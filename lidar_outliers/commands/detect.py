@@ -3,6 +3,10 @@
 Stages are given as groups ``--detector NAME [--option VALUE ...]`` (options generated from the
 pydantic models in ``worker.params``), in pipeline order, or as a JSON file with ``--params``;
 ``--detector`` groups replace the pipeline of the file, the other flags override its settings.
+Without a pipeline the sensor profile chooses one (``--profile``, default auto from the file:
+spinning -> snow, airborne -> detached, mobile -> transient then height_field). ``--trajectory``
+gives the platform's path (lines of ``time x y z``, ``worker.trajectory``) so that ``transient``
+also flags points other beams saw through.
 """
 
 from __future__ import annotations
