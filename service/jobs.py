@@ -103,23 +103,44 @@ class JobService:
 
     # ---- uploads -----------------------------------------------------------------------------
 
-    def store_upload(self, user: User, part: Path, name: str) -> Upload:
-        facts = las_facts_or_remove(part, name)
+    def store_upload(self, user: User, part: Path, name: str, kind: str = "cloud") -> Upload:
+        """Keep a checked upload: a LAS/LAZ cloud (415 otherwise) or, with ``kind``
+        ``"trajectory"``, a trajectory text file (422 otherwise)."""
+        if kind == "trajectory":
+            try:
+                trajectory_facts(part, name)
+            except BaseException:
+                part.unlink(missing_ok=True)
+                raise
+            suffix = ".txt"
+        else:
+            facts = las_facts_or_remove(part, name)
+            suffix = ".laz" if facts.get("compressed") else ".las"
         folder = self.settings.uploads_dir / str(user.id)
         folder.mkdir(parents=True, exist_ok=True)
-        final = folder / (part.stem + (".laz" if facts.get("compressed") else ".las"))
+        final = folder / (part.stem + suffix)
         os.replace(part, final)
         return self.store.add_upload(user.id, name, final, final.stat().st_size)
 
-    def find_upload(self, user: User, href: str) -> Upload:
+    def find_upload(self, user: User, href: str, what: str = CLOUD_INPUT) -> Upload:
         upload_id = href.rstrip("/").rsplit("/", 1)[-1]
         upload = self.store.get_upload(upload_id, user.id)
         if upload is None or not Path(upload.path).exists():
             raise Problem(422, "invalid-parameter",
-                          f"cloud.href: no upload {href!r} of yours; POST the file to /uploads "
+                          f"{what}.href: no upload {href!r} of yours; POST the file to /uploads "
                           "first and use the href it answers", errors=[
-                              {"parameter": "cloud.href", "message": "unknown upload"}])
+                              {"parameter": f"{what}.href", "message": "unknown upload"}])
         return upload
+
+    def trajectory_upload(self, user: User, reference: Any) -> Upload:
+        """The stored trajectory named by ``inputs.trajectory`` (``{"href": "/uploads/<id>"}``
+        from ``POST /uploads?kind=trajectory``) of a JSON execute request."""
+        href = reference.get("href") if isinstance(reference, dict) else None
+        if not isinstance(href, str):
+            raise Problem(422, "invalid-parameter", 'trajectory: give {"href": "/uploads/<id>"} '
+                          "(POST /uploads?kind=trajectory first)",
+                          errors=[{"parameter": "trajectory", "message": "missing href"}])
+        return self.find_upload(user, href, TRAJECTORY_INPUT)
 
     # ---- jobs --------------------------------------------------------------------------------
 
@@ -134,7 +155,8 @@ class JobService:
         cloud = inputs.pop(CLOUD_INPUT, None)
         if TRAJECTORY_INPUT in inputs:
             raise Problem(422, "invalid-parameter", "trajectory: send the trajectory file as "
-                          "the multipart part `trajectory` beside `file`, not in inputs",
+                          "the multipart part `trajectory` beside `file`, or as "
+                          '{"href": "/uploads/<id>"} in a JSON request',
                           errors=[{"parameter": "trajectory", "message": "not an input value"}])
         params = resolve_inputs(process_id, inputs)
         return params.model_dump(mode="json"), cloud
@@ -142,13 +164,15 @@ class JobService:
     def submit(
         self, user: User, process_id: str, params: dict[str, Any], source: Path, name: str,
         *, move: bool, trajectory: Path | None = None, trajectory_name: str = "trajectory.txt",
+        move_trajectory: bool = True,
     ) -> Job:
         """Create a job from a validated file and parameters and queue it.
 
         ``move``: the source is a fresh upload part (renamed into the job folder); otherwise it
         is a stored upload (hard-linked, so the upload can serve further jobs). ``trajectory``:
-        an optional received trajectory part, checked (422 when unusable) and moved into the
-        job folder; its facts appear in the job's ``input_file``."""
+        an optional trajectory file, checked (422 when unusable) and moved (a received part,
+        ``move_trajectory``) or linked (a stored upload) into the job folder; its facts appear
+        in the job's ``input_file``."""
         try:
             active = self.check_active_limit(user)
             facts = las_facts(source, name)
@@ -158,24 +182,18 @@ class JobService:
         except BaseException:
             if move:  # a refused upload is not kept
                 source.unlink(missing_ok=True)
-            if trajectory is not None:
+            if trajectory is not None and move_trajectory:
                 trajectory.unlink(missing_ok=True)
             raise
         job_id = os.urandom(16).hex()
         laz = bool(facts.get("compressed"))
         target = tasks.input_path(self.settings, job_id, laz)
         target.parent.mkdir(parents=True, exist_ok=True)
-        if move:
-            os.replace(source, target)
-        else:
-            try:
-                os.link(source, target)
-            except OSError:
-                shutil.copyfile(source, target)
+        _place(source, target, move)
         stored = target.stat().st_size
         if trajectory is not None:
             traj_target = tasks.trajectory_path(self.settings, job_id)
-            os.replace(trajectory, traj_target)
+            _place(trajectory, traj_target, move_trajectory)
             stored += traj_target.stat().st_size
         job = self.store.create_job(user.id, process_id, params, facts, laz,
                                     stored_bytes=stored, job_id=job_id)
@@ -278,6 +296,17 @@ class JobService:
             if datetime.fromtimestamp(part.stat().st_mtime, UTC) < now - timedelta(days=1):
                 part.unlink(missing_ok=True)
         return removed
+
+
+def _place(source: Path, target: Path, move: bool) -> None:
+    """Rename a received part into place, or hard-link (copy) a stored upload."""
+    if move:
+        os.replace(source, target)
+        return
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copyfile(source, target)
 
 
 def trajectory_facts(path: Path, name: str) -> dict[str, Any]:

@@ -13,7 +13,13 @@ from fastapi.responses import JSONResponse
 from service.deps import ServiceDep, UserDep
 from service.jobs import status_document
 from service.problems import Problem
-from service.processes import describe, inputs_model, process_ids, summary
+from service.processes import (
+    TRAJECTORY_INPUT,
+    describe,
+    inputs_model,
+    process_ids,
+    summary,
+)
 from service.uploads import MULTIPART_OVERHEAD, receive_multipart, refuse_declared_size
 
 router = APIRouter(tags=["processes"])
@@ -46,7 +52,9 @@ EXECUTE_BODY = {
                     "required": ["inputs"],
                     "properties": {"inputs": {"type": "object", "description":
                                               'The inputs plus "cloud": {"href": '
-                                              '"/uploads/<id>"} from POST /uploads.'}},
+                                              '"/uploads/<id>"} from POST /uploads and '
+                                              'optionally "trajectory": {"href": ...} from '
+                                              "POST /uploads?kind=trajectory."}},
                 }
             },
         },
@@ -110,15 +118,24 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         if not isinstance(document, dict) or not isinstance(document.get("inputs", {}), dict):
             raise Problem(400, "invalid-request", 'send {"inputs": {"cloud": {"href": '
                           '"/uploads/<id>"}, ...}}')
-        params, cloud = service.parse_inputs(process_id, document.get("inputs", {}))
+        inputs = dict(document.get("inputs", {}))
+        trajectory_ref = inputs.pop(TRAJECTORY_INPUT, None)
+        params, cloud = service.parse_inputs(process_id, inputs)
         href = cloud.get("href") if isinstance(cloud, dict) else None
         if not isinstance(href, str):
             raise Problem(422, "invalid-parameter", 'cloud: missing; give "cloud": {"href": '
                           '"/uploads/<id>"} (POST /uploads first) or send multipart/form-data',
                           errors=[{"parameter": "cloud", "message": "missing href"}])
         upload = await run_in_threadpool(service.find_upload, user, href)
+        trajectory = trajectory_name = None
+        if trajectory_ref is not None:
+            stored = await run_in_threadpool(service.trajectory_upload, user, trajectory_ref)
+            trajectory, trajectory_name = Path(stored.path), stored.name
         job = await run_in_threadpool(service.submit, user, process_id, params,
-                                      Path(upload.path), upload.name, move=False)
+                                      Path(upload.path), upload.name, move=False,
+                                      trajectory=trajectory,
+                                      trajectory_name=trajectory_name or "trajectory.txt",
+                                      move_trajectory=False)
     else:
         raise Problem(415, "unsupported-media-type",
                       "send multipart/form-data (part `file` and optional part `inputs`) or "

@@ -85,3 +85,32 @@ def test_bad_trajectory_is_a_422_problem(stack: Stack, key: str, survey) -> None
                              files=_parts(las, None, {"trajectory": {"href": "/x"}}))
         assert answer.status_code == 422 and "multipart part `trajectory`" in answer.text
     assert not incoming.exists() or not list(incoming.glob("*.part"))
+
+
+def test_json_request_with_uploaded_trajectory(stack: Stack, key: str, survey) -> None:
+    las, traj = survey
+    with stack.client(key) as client:
+        cloud = client.post("/uploads", params={"name": las.name}, content=las.read_bytes())
+        assert cloud.status_code == 201, cloud.text
+        path = client.post("/uploads", params={"name": "drive.txt", "kind": "trajectory"},
+                           content=traj.read_bytes())
+        assert path.status_code == 201, path.text
+        # a LAS file is not a trajectory, nor a trajectory a cloud
+        wrong = client.post("/uploads", params={"kind": "trajectory"}, content=las.read_bytes())
+        assert wrong.status_code == 422 and "not a text file" in wrong.json()["detail"]
+        answer = client.post("/processes/pipeline/execution", json={"inputs": {
+            "cloud": {"href": path.json()["href"]}}})
+        assert answer.status_code == 415, answer.text
+        answer = client.post("/processes/pipeline/execution", json={"inputs": {
+            "cloud": {"href": cloud.json()["href"]}, "trajectory": {"href": "/uploads/nope"}}})
+        assert answer.status_code == 422 and "trajectory.href" in answer.text
+        answer = client.post("/processes/pipeline/execution", json={"inputs": {
+            "cloud": {"href": cloud.json()["href"]},
+            "trajectory": {"href": path.json()["href"]}}})
+        assert answer.status_code == 201, answer.text
+        done = wait_job(client, answer.json()["jobID"], ("successful", "failed"))
+        assert done["status"] == "successful", done["message"]
+        assert done["input_file"]["trajectory"]["name"] == "drive.txt"
+        stats = client.get(f"/jobs/{done['jobID']}/results/statistics").json()
+    assert stats["trajectory"]["used_by"] == "transient"
+    assert stats["stages"][0]["info"]["points_flagged_by_free_space"] > 0
