@@ -28,7 +28,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -100,7 +100,24 @@ def outlier_pipelines() -> dict[str, list[str]]:
     key = "->".join(default)
     if key not in out:
         out[f"default ({key})"] = default
+    if "transient" in default:  # the only detector that uses a trajectory (free-space evidence)
+        out[f"default ({key}){WITH_TRAJECTORY}"] = default
     return out
+
+
+#: Suffix of a pipeline name run with the simulator's trajectory file attached to the cloud.
+WITH_TRAJECTORY = " + trajectory"
+
+
+def with_simulated_trajectory(cloud, las_path: Path):
+    """The cloud with the trajectory the simulator wrote beside it, or None when there is none."""
+    from worker.trajectory import read_trajectory
+
+    path = las_path.with_suffix(".trajectory.txt")
+    if not path.exists():
+        return None
+    local = read_trajectory(path) - np.r_[0.0, cloud.origin]  # into the cloud's local frame
+    return replace(cloud, trajectory=local)
 
 
 def run_outlier_pipeline(cloud, stages: list[str]) -> tuple[np.ndarray, list[np.ndarray], float]:
@@ -171,12 +188,14 @@ def bench_simulated(cfg: BenchConfig, report: Report, say: Print) -> dict[str, P
                 kinds.append(np.asarray(t["kind"], dtype=np.uint8))
                 kind_names = [str(k) for k in t["kind_names"]]
             points[cond] += len(cloud)
+            tracked = with_simulated_trajectory(cloud, path)
             for name, stages in pipelines.items():
-                if name in failed:
+                run_on = tracked if name.endswith(WITH_TRAJECTORY) else cloud
+                if name in failed or run_on is None:
                     continue
                 say(f"  {cond} seed {seed}: {name}")
                 try:
-                    f, per_stage, sec = run_outlier_pipeline(cloud, stages)
+                    f, per_stage, sec = run_outlier_pipeline(run_on, stages)
                 except LidarOutliersError as exc:  # e.g. a detector needing another dimension
                     failed[name] = f"{type(exc).__name__}: {exc}"
                     continue
