@@ -12,7 +12,8 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -192,6 +193,23 @@ class Stack:
         for proc in self.workers:
             stop_group(proc)
         self.workers = []
+
+
+@contextmanager
+def running_stack(
+    data_dir: Path, redis_url: str, *, workers: int = 1, **settings: Any
+) -> Iterator[Stack]:
+    """The API and ``workers`` Celery workers on ``data_dir``; every process stopped on exit."""
+    stack = Stack(data_dir, redis_url, **settings)
+    try:
+        for _ in range(workers):
+            stack.start_worker()
+        stack.start_api()
+        if workers:
+            stack.wait_workers_ready()
+        yield stack
+    finally:
+        stack.stop()
 
 
 def wait_job(client: httpx.Client, job_id: str, statuses: tuple[str, ...],

@@ -14,7 +14,7 @@ import pytest
 from pydantic_core import to_jsonable_python
 
 from tests.e2e.clouds import write_cloud
-from tests.e2e.stack import RedisServer, Stack
+from tests.e2e.stack import RedisServer, Stack, running_stack
 from worker.params import STAGE_MODELS, PipelineParams
 
 OGC = "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
@@ -23,13 +23,10 @@ LIMIT = 300_000
 
 @pytest.fixture(scope="module")
 def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
-    s = Stack(tmp_path_factory.mktemp("data"), redis_server.new_url(),
-              max_active_jobs_per_user=2, max_upload_bytes=LIMIT, retry_after_seconds=17)
-    try:
-        s.start_api()
+    with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url(), workers=0,
+                       max_active_jobs_per_user=2, max_upload_bytes=LIMIT,
+                       retry_after_seconds=17) as s:
         yield s
-    finally:
-        s.stop()
 
 
 @pytest.fixture(scope="module")

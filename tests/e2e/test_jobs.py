@@ -11,21 +11,15 @@ import numpy as np
 import pytest
 
 from tests.e2e.clouds import write_cloud
-from tests.e2e.stack import RedisServer, Stack, wait_job
+from tests.e2e.stack import RedisServer, Stack, running_stack, wait_job
 
 
 @pytest.fixture(scope="module")
 def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
           compiled_detectors: None) -> Iterator[Stack]:
-    s = Stack(tmp_path_factory.mktemp("data"), redis_server.new_url(),
-              max_active_jobs_per_user=8)
-    try:
-        s.start_worker()
-        s.start_api()
-        s.wait_workers_ready()
+    with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url(),
+                       max_active_jobs_per_user=8) as s:
         yield s
-    finally:
-        s.stop()
 
 
 @pytest.fixture(scope="module")

@@ -11,20 +11,14 @@ import pytest
 
 from lidar_outliers.commands.simulate import write_simulation
 from lidar_outliers.simulator import simulate
-from tests.e2e.stack import RedisServer, Stack, wait_job
+from tests.e2e.stack import RedisServer, Stack, running_stack, wait_job
 
 
 @pytest.fixture(scope="module")
 def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
           compiled_detectors: None) -> Iterator[Stack]:
-    s = Stack(tmp_path_factory.mktemp("data"), redis_server.new_url())
-    try:
-        s.start_worker()
-        s.start_api()
-        s.wait_workers_ready()
+    with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url()) as s:
         yield s
-    finally:
-        s.stop()
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ import pytest
 
 from service.store import Store
 from tests.e2e.clouds import write_cloud
-from tests.e2e.stack import RedisServer, Stack, alive, wait_for, wait_job
+from tests.e2e.stack import RedisServer, Stack, alive, running_stack, wait_for, wait_job
 
 #: Long enough to be caught running (reading, detecting and writing take a few seconds).
 SLOW_POINTS = 300_000
@@ -26,16 +26,10 @@ SLOW = {"pipeline": [{"detector": "temporal", "sigma": 0.01}]}
 def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
           compiled_detectors: None) -> Iterator[Stack]:
     # a short visibility timeout, so that a job of a vanished worker is re-delivered quickly
-    s = Stack(tmp_path_factory.mktemp("data"), redis_server.new_url(),
-              max_active_jobs_per_user=10, task_time_limit=60, visibility_timeout=65)
-    try:
-        s.start_worker()
-        s.start_worker()
-        s.start_api()
-        s.wait_workers_ready()
+    with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url(), workers=2,
+                       max_active_jobs_per_user=10, task_time_limit=60,
+                       visibility_timeout=65) as s:
         yield s
-    finally:
-        s.stop()
 
 
 @pytest.fixture(scope="module")
@@ -152,15 +146,9 @@ def test_cancel_a_running_job(stack: Stack, key: str, slow_file: Path) -> None:
 @pytest.fixture(scope="module")
 def single_worker(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
                   compiled_detectors: None) -> Iterator[Stack]:
-    s = Stack(tmp_path_factory.mktemp("fair"), redis_server.new_url(),
-              max_active_jobs_per_user=10)
-    try:
-        s.start_worker()
-        s.start_api()
-        s.wait_workers_ready()
+    with running_stack(tmp_path_factory.mktemp("fair"), redis_server.new_url(),
+                       max_active_jobs_per_user=10) as s:
         yield s
-    finally:
-        s.stop()
 
 
 def test_one_users_queue_does_not_starve_another(single_worker: Stack, tmp_path: Path) -> None:
