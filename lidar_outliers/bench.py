@@ -485,9 +485,30 @@ def _labelled_files(folder: Path) -> list[tuple[Path, Path]]:
     return pairs
 
 
-def _all_methods(cloud, say: Print, label: str):
-    """(name, flagged, seconds) for every outlier pipeline and baseline on one cloud."""
+def run_default_pipeline(cloud, facts) -> tuple[str, np.ndarray, float]:
+    """What a job naming no pipeline runs on this file: (row name, flags (n,) bool, seconds)."""
+    from worker.pipeline import parse_pipeline_params, run_pipeline
+
+    params = parse_pipeline_params({"classify": False})
+    start = time.perf_counter()
+    result = run_pipeline(cloud, params, facts=facts)
+    seconds = time.perf_counter() - start
+    stats = result.statistics
+    stages = "->".join(stage["detector"] for stage in stats["stages"])
+    return f"default: {stats.get('profile', '?')} profile ({stages})", result.flags != 0, seconds
+
+
+def _all_methods(cloud, say: Print, label: str, facts=None):
+    """(name, flagged, seconds) for every outlier pipeline and baseline on one cloud.
+
+    The default pipeline is the one the file's profile chooses (``facts``: its header facts),
+    not the mobile default that the simulated section shows.
+    """
+    say(f"  {label}: default pipeline")
+    yield run_default_pipeline(cloud, facts)
     for name, stages in outlier_pipelines().items():
+        if name.startswith("default ("):
+            continue
         say(f"  {label}: {name}")
         try:
             flagged, _, sec = run_outlier_pipeline(cloud, stages)
@@ -509,7 +530,7 @@ def _all_methods(cloud, say: Print, label: str):
 def bench_wads(folder: Path, report: Report, say: Print) -> None:
     """Section 3: falling snow; precision, recall and F1 pooled over the frames."""
     from algorithms.metrics import outlier_confusion
-    from worker.lasio import read_cloud
+    from worker.lasio import inspect_las, read_cloud
 
     pairs = _labelled_files(folder)
     if not pairs:
@@ -520,7 +541,8 @@ def bench_wads(folder: Path, report: Report, say: Print) -> None:
         cloud.classification[:] = 0
         with np.load(truth_path) as t:
             truth = np.asarray(t["is_outlier"], dtype=bool)
-        for name, flagged, sec in _all_methods(cloud, say, path.stem):
+        facts = inspect_las(path)
+        for name, flagged, sec in _all_methods(cloud, say, path.stem, facts):
             entry = pooled.setdefault(name, [[], [], 0.0, None])
             if flagged is None:
                 entry[3] = sec
@@ -552,7 +574,7 @@ def bench_wads(folder: Path, report: Report, say: Print) -> None:
 
 def bench_airborne(folder: Path, report: Report, say: Print) -> None:
     """Section 4: recall on the ``gross`` points, false alarms on the unlabelled points."""
-    from worker.lasio import read_cloud
+    from worker.lasio import inspect_las, read_cloud
 
     pairs = _labelled_files(folder)
     if not pairs:
@@ -574,7 +596,8 @@ def bench_airborne(folder: Path, report: Report, say: Print) -> None:
         with np.load(truth_path) as t:
             gross = np.asarray(t["gross"], dtype=bool)
             labelled = np.asarray(t["is_outlier"], dtype=bool)
-        for name, flagged, sec in _all_methods(cloud, say, path.stem):
+        facts = inspect_las(path)
+        for name, flagged, sec in _all_methods(cloud, say, path.stem, facts):
             if flagged is None:
                 report.lines.append(_row([name, "—", "—", "—", "—", f"failed: {sec}"]))
                 continue
