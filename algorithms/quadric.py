@@ -61,6 +61,8 @@ from algorithms.stats import t_critical_value
 #: Unknowns of eq. 18 and the redundancy lost to them (10 parameters, 1 constraint).
 N_PARAMS = 10
 DOF_LOSS = 9
+#: Relative rounding allowed above the bound T_i <= sqrt(n - 9) before a T_i is distrusted.
+_T_BOUND_SLACK = 1e-6
 
 
 @dataclass
@@ -135,11 +137,19 @@ def equivalent_variance(
 
 
 @njit(cache=True, inline="always")
-def t_statistic(v: float, sigma0: float, q_vv: float) -> float:
-    """T_i of eq. 31: |v_i| / (sigma_0 sqrt(q_vv_i)); NaN when q_vv or sigma_0 is not positive."""
+def t_statistic(v: float, sigma0: float, q_vv: float, redundancy: int) -> float:
+    """T_i of eq. 31: |v_i| / (sigma_0 sqrt(q_vv_i)); NaN when it cannot be trusted.
+
+    In exact arithmetic T_i <= sqrt(redundancy) (v_i^2 / q_vv_i can never exceed v^T P v). A
+    larger value, or q_vv / sigma_0 not positive, means q_vv = 1/p_i - B_i Q_aa B_i^T was lost
+    to cancellation (a nearly degenerate patch): the point is left untested instead of flagged.
+    """
     if q_vv <= 0.0 or sigma0 <= 0.0:
         return math.nan
-    return abs(v) / (sigma0 * math.sqrt(q_vv))
+    t = abs(v) / (sigma0 * math.sqrt(q_vv))
+    if t > math.sqrt(redundancy) * (1.0 + _T_BOUND_SLACK):
+        return math.nan
+    return t
 
 
 # ---------------------------------------------------------------------------------------------
@@ -546,7 +556,8 @@ def _fit_one(
         bqb = 0.0
         for q in range(N_PARAMS):
             bqb += mono[i, _N_INDEX[q, 9]] * cols[q, i]
-        t_out[i] = t_statistic(v_out[i], sigma0, 1.0 / p_w[i] - bqb)  # q_vv = 1/p_i - B Q_aa B^T
+        q_vv = 1.0 / p_w[i] - bqb  # cofactor of v_i: 1/p_i - B_i Q_aa B_i^T
+        t_out[i] = t_statistic(v_out[i], sigma0, q_vv, n_act - DOF_LOSS)
     if _canonical_sign(a):
         for i in range(n):
             if active[i]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -296,3 +298,15 @@ def test_nearly_collinear_points_stop_at_once():
     fit = fit_quadrics(line, 0.005)
     assert not fit.converged[0] and fit.iterations[0] == 0 and np.isnan(fit.t_stat[0]).all()
     assert fit.iterations[1] > 0
+
+
+def test_degenerate_patches_are_untested_not_flagged():
+    """Regression: 40-point patches of simulated cloud A (vehicle standing still, one scan line
+    repeated) once gave T_i up to 5e8, beyond the bound sqrt(n - 9) that holds in exact
+    arithmetic; cancellation in q_vv = 1/p_i - B_i Q_aa B_i^T must leave them untested."""
+    patches = np.load(Path(__file__).parent.parent / "data" / "quadric" / "degenerate_patches.npy")
+    fit = fit_quadrics(patches, 0.005)
+    t = fit.t_stat
+    bound = np.sqrt(patches.shape[1] - DOF_LOSS) * (1 + 1e-6)  # rounding slack of t_statistic
+    assert np.all(np.isnan(t) | (t <= bound))
+    assert np.isnan(t[:, 0]).any()  # the originally flagged points are now untested
