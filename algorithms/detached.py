@@ -33,6 +33,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from algorithms.checks import check_xyz
 from algorithms.result import DetectorResult
 
 _BATCH = 20_000  # candidate points per batch of plane fits (bounds memory to ~100 MB)
@@ -143,11 +144,7 @@ def detect_detached(
     >>> np.flatnonzero(detect_detached(pts).flagged).tolist()
     [3000, 3001]
     """
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise ValueError(f"xyz must have shape (n, 3), got {xyz.shape}")
-    if not np.all(np.isfinite(xyz)):
-        raise ValueError("xyz holds NaN or infinite coordinates")
+    xyz = check_xyz(xyz)
     for name, value in (("link", link), ("below", below), ("above", above)):
         if not value > 0:
             raise ValueError(f"{name} must be > 0, got {value!r}")

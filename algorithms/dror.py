@@ -19,16 +19,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from algorithms.checks import check_xyz
 from algorithms.result import DetectorResult
-
-
-def _check_xyz(xyz: np.ndarray) -> np.ndarray:
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise ValueError(f"xyz must have shape (n, 3), got {xyz.shape}")
-    if not np.all(np.isfinite(xyz)):
-        raise ValueError("xyz holds NaN or infinite coordinates")
-    return xyz
 
 
 def dynamic_radius(
@@ -84,7 +76,7 @@ def detect_dror(
     >>> detect_dror(pts).flagged.tolist()
     [False, False, False, True]
     """
-    xyz = _check_xyz(xyz)
+    xyz = check_xyz(xyz)
     if k_min < 1:
         raise ValueError(f"k_min must be >= 1, got {k_min}")
     radius = dynamic_radius(

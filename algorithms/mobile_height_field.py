@@ -36,6 +36,7 @@ import numpy as np
 from numba import njit, prange
 from scipy.spatial import cKDTree
 
+from algorithms.checks import check_xyz
 from algorithms.result import DetectorResult
 from algorithms.stats import MAD_TO_SIGMA
 from worker.errors import ParameterError
@@ -283,11 +284,7 @@ def neighbours(xyz: np.ndarray, k: int) -> np.ndarray:
 
 def check_inputs(xyz: np.ndarray, k: int, sigma: float | str, threshold: float,
                  rms_weight: float) -> np.ndarray:
-    arr = np.asarray(xyz, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ParameterError(f"xyz must have shape (n, 3), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ParameterError("xyz holds NaN or infinite coordinates")
+    arr = check_xyz(xyz)
     if not 8 <= k <= 200:
         raise ParameterError(f"k must be between 8 and 200, got {k}")
     if sigma != "auto" and not (isinstance(sigma, int | float) and sigma > 0):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from algorithms.checks import check_xyz
 from algorithms.quadric import DOF_LOSS, fit_quadrics, min_patch_size
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
@@ -25,16 +26,6 @@ BATCH_NEIGHBOURS = BATCH_POINTS * 40
 #: saves ~10 % of the time against 1e-8.
 FIT_MAX_ITER = 100
 FIT_TOL = 1e-7
-
-
-def check_xyz(xyz: np.ndarray) -> np.ndarray:
-    """(n, 3) finite float64 copy-free view of ``xyz``, or ParameterError."""
-    arr = np.asarray(xyz, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ParameterError(f"xyz must have shape (n, 3), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ParameterError("xyz holds NaN or infinite coordinates")
-    return arr
 
 
 def check_sigma(sigma: float | np.ndarray) -> np.ndarray:

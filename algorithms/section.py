@@ -18,7 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from algorithms.patch import check_sigma, check_xyz
+from algorithms.checks import check_xyz
+from algorithms.patch import check_sigma
 from algorithms.quadric import DOF_LOSS, N_PARAMS, fit_masked, min_patch_size
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value

@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from algorithms.dror import _check_xyz, dynamic_radius, neighbour_counts
+from algorithms.checks import check_xyz
+from algorithms.dror import dynamic_radius, neighbour_counts
 from algorithms.result import DetectorResult
 
 
@@ -45,7 +46,7 @@ def detect_snow(
     candidates), NaN for the others (not tested); critical value 0 (flagged when score > 0).
     Neighbours are counted among ALL points, bright or dark.
     """
-    xyz = _check_xyz(xyz)
+    xyz = check_xyz(xyz)
     intensity = np.asarray(intensity)
     if intensity.shape != (len(xyz),):
         raise ValueError(f"intensity must have shape ({len(xyz)},), got {intensity.shape}")

@@ -16,8 +16,11 @@ class MissingDimensionError(LidarOutliersError):
     """A detector needs a dimension the file does not have (e.g. temporal without gps_time)."""
 
 
-class ParameterError(LidarOutliersError):
-    """A parameter is out of range or inconsistent (e.g. k too small for alpha)."""
+class ParameterError(LidarOutliersError, ValueError):
+    """A parameter is out of range or inconsistent (e.g. k too small for alpha).
+
+    Also a ValueError, the exception numpy-style callers expect for a bad argument.
+    """
 
 
 class CancelledError(LidarOutliersError):
