@@ -28,7 +28,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -116,8 +116,7 @@ def with_simulated_trajectory(cloud, las_path: Path):
     path = las_path.with_suffix(".trajectory.txt")
     if not path.exists():
         return None
-    local = read_trajectory(path) - np.r_[0.0, cloud.origin]  # into the cloud's local frame
-    return replace(cloud, trajectory=local)
+    return cloud.with_trajectory(read_trajectory(path))
 
 
 def run_outlier_pipeline(cloud, stages: list[str]) -> tuple[np.ndarray, list[np.ndarray], float]:

@@ -24,7 +24,7 @@ import struct
 import sys
 import uuid
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -124,6 +124,11 @@ class Cloud:
             intensity=None if self.intensity is None else self.intensity[index],
             trajectory=self.trajectory,
         )
+
+    def with_trajectory(self, trajectory: np.ndarray) -> Cloud:
+        """The same points with ``trajectory`` ((m, 4): time, then x, y, z in file coordinates)
+        moved into the cloud's local frame."""
+        return replace(self, trajectory=trajectory - np.r_[0.0, self.origin])
 
 
 # --------------------------------------------------------------------------- header validation

@@ -423,7 +423,7 @@ def process_file(
         in_path, chunk_points=chunk_points, progress=progress, progress_span=(0.0, _READ)
     )
     if traj is not None:
-        cloud.trajectory = traj - np.r_[0.0, cloud.origin]  # into the cloud's local frame
+        cloud = cloud.with_trajectory(traj)
     t_read = time.perf_counter()
     result = run_pipeline(
         cloud, params, progress, facts=facts, progress_span=(_READ, _DETECT)
