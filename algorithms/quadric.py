@@ -154,10 +154,10 @@ def t_statistic(v: float, sigma0: float, q_vv: float, redundancy: int) -> float:
 
 # ---------------------------------------------------------------------------------------------
 # Normal equations from weighted moments: N[p, q] = sum_i p_i B_ip B_iq, and every product of two
-# entries of eq. 23 is one of the 35 monomials x^i y^j z^l with i + j + l <= 4. Accumulating the 35
-# weighted monomials per point (a contiguous, vectorisable loop) instead of the 55 distinct
-# entries of N, and reusing the monomials (they do not change between iterations), is what makes
-# the per-point cost small.
+# entries of eq. 23 is one of the 35 monomials x^i y^j z^l with i + j + l <= 4. Summing the 35
+# weighted monomials (formed per block of points from their powers, in loops the compiler
+# vectorises) instead of the 55 distinct entries of N is what makes the per-point cost small;
+# nothing of size n x 35 is stored.
 # ---------------------------------------------------------------------------------------------
 
 #: Exponents (x, y, z) of the 10 entries of B_i (eq. 23), in parameter order a1..a10.
@@ -184,19 +184,63 @@ _N_INDEX = np.array(
 )
 
 
+#: Points per block of the moment sums: the block's powers (3 x 5 x 256 floats, 30 kB) stay in
+#: the cache while the 35 sums run over them.
+_BLOCK = 256
+
+
+@njit(cache=True, inline="always")
+def _block_powers(xyz: np.ndarray, start: int, nb: int, powers: np.ndarray) -> None:
+    """powers[c, e, i] = xyz[start + i, c] ** e for e = 0..4 and the nb points of the block.
+
+    Coordinate by coordinate and power by power, so that every loop is contiguous."""
+    for c in range(3):
+        p0, p1, p2, p3, p4 = powers[c, 0], powers[c, 1], powers[c, 2], powers[c, 3], powers[c, 4]
+        for i in range(nb):
+            p1[i] = xyz[start + i, c]
+        for i in range(nb):
+            v = p1[i]
+            v2 = v * v
+            p0[i] = 1.0
+            p2[i] = v2
+            p3[i] = v2 * v
+            p4[i] = v2 * v2
+
+
+@njit(cache=True, fastmath={"reassoc", "contract"})
+def _block_moments(
+    powers: np.ndarray, weight: np.ndarray, nb: int, count: int, out: np.ndarray
+) -> None:
+    """out[j] += sum_i weight[i] * monomial j of point i, over the nb points of one block.
+
+    ``reassoc`` lets the compiler split each sum into vector lanes (the order of the additions
+    is the only difference from a plain loop).
+    """
+    for j in range(count):
+        px = powers[0, _MONOMIALS[j, 0]]
+        py = powers[1, _MONOMIALS[j, 1]]
+        pz = powers[2, _MONOMIALS[j, 2]]
+        acc = 0.0
+        for i in range(nb):
+            acc += weight[i] * px[i] * py[i] * pz[i]
+        out[j] += acc
+
+
 @njit(cache=True)
-def _monomials(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> None:
-    """out[i, j] = x_i^ex_j y_i^ey_j z_i^ez_j for the 35 monomials (active rows only)."""
-    pw = np.empty((3, 5))
-    for i in range(xyz.shape[0]):
-        if not active[i]:
-            continue
-        for c in range(3):
-            pw[c, 0] = 1.0
-            for e in range(1, 5):
-                pw[c, e] = pw[c, e - 1] * xyz[i, c]
-        for j in range(_N_MONO):
-            out[i, j] = pw[0, _MONOMIALS[j, 0]] * pw[1, _MONOMIALS[j, 1]] * pw[2, _MONOMIALS[j, 2]]
+def weighted_moments(xyz: np.ndarray, weight: np.ndarray, count: int, out: np.ndarray) -> None:
+    """out[j] = sum_i weight_i x_i^ex_j y_i^ey_j z_i^ez_j for the first ``count`` monomials.
+
+    The monomials are ordered by degree, so ``count`` 35 gives the entries of N = B^T P B and
+    ``count`` 10 those of B^T u (the entries of eq. 23). Rows with weight 0 add nothing. The
+    monomials are formed per block of points from the block's powers; only the order of the
+    additions differs from a plain loop over the points.
+    """
+    powers = np.empty((3, 5, _BLOCK))
+    out[:count] = 0.0
+    for start in range(0, xyz.shape[0], _BLOCK):
+        nb = min(_BLOCK, xyz.shape[0] - start)
+        _block_powers(xyz, start, nb, powers)
+        _block_moments(powers, weight[start:start + nb], nb, count, out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -293,7 +337,7 @@ def _lu_solve(lu: np.ndarray, piv: np.ndarray, x: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def _algebraic_start(mono: np.ndarray, active: np.ndarray, out: np.ndarray) -> None:
+def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> None:
     """Unit eigenvector of the smallest eigenvalue of B^T B (active rows), into ``out`` (10,).
 
     Inverse iteration with one LU factorisation (no LAPACK call per patch): the smallest
@@ -301,11 +345,8 @@ def _algebraic_start(mono: np.ndarray, active: np.ndarray, out: np.ndarray) -> N
     (typically by a factor 50 on k = 40 patches), so about ten solves reach machine precision;
     np.linalg.eigh is the fallback when they do not.
     """
-    acc = np.zeros(_N_MONO)
-    for i in range(mono.shape[0]):
-        if active[i]:
-            for j in range(_N_MONO):
-                acc[j] += mono[i, j]
+    acc = np.empty(_N_MONO)
+    weighted_moments(xyz, active.astype(np.float64), _N_MONO, acc)
     btb = np.empty((N_PARAMS, N_PARAMS))
     trace = 0.0
     for p in range(N_PARAMS):
@@ -356,7 +397,6 @@ INVERSE_ITERATIONS = 16
 @njit(cache=True)
 def _adjust(
     xyz: np.ndarray,
-    mono: np.ndarray,
     active: np.ndarray,
     var: np.ndarray,
     a: np.ndarray,
@@ -365,44 +405,55 @@ def _adjust(
     rhs: np.ndarray,
     w: np.ndarray,
     p_w: np.ndarray,
+    powers: np.ndarray,
+    block_w: np.ndarray,
     acc: np.ndarray,
 ) -> bool:
     """One adjustment linearised at ``a`` (10,): da into rhs[:10, 0]; False if it cannot be solved.
 
     Leaves the bordered matrix in ``m_copy`` and w_i (eq. 24), p_i = 1/sigma_i^2 (eq. 30) of the
     active rows in ``w`` and ``p_w``, for the residuals and cofactors of the last adjustment.
+    N = B^T P B and u = B^T P w are summed block by block from the points' powers
+    (:func:`_block_moments`). Scratch: ``powers`` (3, 5, _BLOCK), which holds the powers of all
+    points already when n <= _BLOCK (the caller computes them once per fit), ``block_w``
+    (2, _BLOCK) and ``acc`` (45,).
     """
-    acc[:] = 0.0  # (35,) weighted monomial sums, scratch passed in to avoid an allocation
-    for q in range(N_PARAMS + 1):
-        rhs[q, 0] = 0.0
-    for i in range(xyz.shape[0]):
-        if not active[i]:
-            continue
-        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-        wi = (
-            a[0] * mono[i, _N_INDEX[0, 9]] + a[1] * mono[i, _N_INDEX[1, 9]]
-            + a[2] * mono[i, _N_INDEX[2, 9]] + a[3] * mono[i, _N_INDEX[3, 9]]
-            + a[4] * mono[i, _N_INDEX[4, 9]] + a[5] * mono[i, _N_INDEX[5, 9]]
-            + a[6] * x + a[7] * y + a[8] * z + a[9]
-        )  # fmt: skip
-        ax, ay, az = gradient(a, x, y, z)
-        s2 = equivalent_variance(ax, ay, az, var[0], var[1], var[2])
-        if not (s2 > 0.0 and s2 < math.inf):
-            return False
-        pi = 1.0 / s2
-        w[i] = wi
-        p_w[i] = pi
-        for j in range(_N_MONO):
-            acc[j] += pi * mono[i, j]
-        pw = pi * wi
-        for q in range(N_PARAMS):
-            rhs[q, 0] -= pw * mono[i, _N_INDEX[q, 9]]
+    acc[:] = 0.0
+    n_mono, u = acc[:_N_MONO], acc[_N_MONO:]
+    p_b, pw_b = block_w[0], block_w[1]
+    for start in range(0, xyz.shape[0], _BLOCK):
+        nb = min(_BLOCK, xyz.shape[0] - start)
+        if xyz.shape[0] > _BLOCK:
+            _block_powers(xyz, start, nb, powers)
+        for i in range(nb):
+            if not active[start + i]:
+                p_b[i] = 0.0
+                pw_b[i] = 0.0
+                continue
+            x, y, z = powers[0, 1, i], powers[1, 1, i], powers[2, 1, i]
+            wi = (
+                a[0] * powers[0, 2, i] + a[1] * powers[1, 2, i] + a[2] * powers[2, 2, i]
+                + a[3] * x * y + a[4] * x * z + a[5] * y * z + a[6] * x + a[7] * y + a[8] * z
+                + a[9]
+            )  # fmt: skip  # eq. 24: F(a0, x_i)
+            ax, ay, az = gradient(a, x, y, z)
+            s2 = equivalent_variance(ax, ay, az, var[0], var[1], var[2])
+            if not (s2 > 0.0 and s2 < math.inf):
+                return False
+            pi = 1.0 / s2
+            w[start + i] = wi
+            p_w[start + i] = pi
+            p_b[i] = pi
+            pw_b[i] = pi * wi
+        _block_moments(powers, p_b, nb, _N_MONO, n_mono)  # N as 35 weighted monomial sums
+        _block_moments(powers, pw_b, nb, N_PARAMS, u)  # B^T P w: eq. 23's entries are the first 10
     aa = 0.0
     for p in range(N_PARAMS):
         for q in range(N_PARAMS):
             m[p, q] = acc[_N_INDEX[p, q]]
         m[p, N_PARAMS] = a[p]
         m[N_PARAMS, p] = a[p]
+        rhs[p, 0] = -u[_N_INDEX[p, 9]]
         aa += a[p] * a[p]
     m[N_PARAMS, N_PARAMS] = 0.0
     rhs[N_PARAMS, 0] = 0.5 * (1.0 - aa)  # eq. 19 linearised: 2 a0.da = 1 - a0.a0
@@ -476,9 +527,7 @@ def _fit_one(
             n_act += 1
     if n_act <= DOF_LOSS or _nearly_collinear(xyz, active):
         return math.nan, 0, False
-    mono = np.empty((n, _N_MONO))
-    _monomials(xyz, active, mono)
-    _algebraic_start(mono, active, a)
+    _algebraic_start(xyz, active, a)
 
     s = N_PARAMS + 1
     m = np.empty((s, s))
@@ -490,7 +539,11 @@ def _fit_one(
     a_plain = np.empty(N_PARAMS)
     w = np.empty(n)
     p_w = np.empty(n)
-    acc = np.empty(_N_MONO)
+    powers = np.empty((3, 5, _BLOCK))
+    if n <= _BLOCK:
+        _block_powers(xyz, 0, n, powers)  # fixed for the whole fit
+    block_w = np.empty((2, _BLOCK))
+    acc = np.empty(_N_MONO + N_PARAMS)
 
     iterations = 0
     converged = False
@@ -499,7 +552,7 @@ def _fit_one(
     last_plain_step = math.inf
     while iterations < max_iter:
         iterations += 1
-        if not _adjust(xyz, mono, active, var, a, m, m_last, rhs, w, p_w, acc):
+        if not _adjust(xyz, active, var, a, m, m_last, rhs, w, p_w, powers, block_w, acc):
             return math.nan, iterations, False
         step = 0.0
         for q in range(N_PARAMS):
@@ -546,16 +599,18 @@ def _fit_one(
     cols = np.zeros((s, n_rows))
     for i in range(n_rows):
         if active[i]:
+            design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
             for q in range(N_PARAMS):
-                cols[q, i] = mono[i, _N_INDEX[q, 9]]
+                cols[q, i] = b[q]
     if not _solve(m_last, cols):
         return math.nan, iterations, False
     for i in range(n_rows):
         if not active[i]:
             continue
+        design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
         bqb = 0.0
         for q in range(N_PARAMS):
-            bqb += mono[i, _N_INDEX[q, 9]] * cols[q, i]
+            bqb += b[q] * cols[q, i]
         q_vv = 1.0 / p_w[i] - bqb  # cofactor of v_i: 1/p_i - B_i Q_aa B_i^T
         t_out[i] = t_statistic(v_out[i], sigma0, q_vv, n_act - DOF_LOSS)
     if _canonical_sign(a):

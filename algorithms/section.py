@@ -10,11 +10,12 @@ Scores: a removed point keeps the T_i of the fit that removed it; a kept point g
 last fit. A section that has fewer than the points needed for eq. 31 to flag anything at ``alpha``
 (see :func:`algorithms.quadric.min_patch_size`; never fewer than 10), or whose fit does not
 converge, leaves its remaining points untested (NaN); points removed before stay flagged.
-Sections run in parallel (numba, one section per task).
+Sections run in parallel (numba, one section per task, largest first).
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -95,6 +96,7 @@ def _one_section(
 def _all_sections(
     xyz: np.ndarray,
     offsets: np.ndarray,
+    sequence: np.ndarray,
     var: np.ndarray,
     crit_table: np.ndarray,
     min_points: int,
@@ -107,8 +109,10 @@ def _all_sections(
     fits: np.ndarray,
     iterations: np.ndarray,
 ) -> None:
-    """Run :func:`_one_section` on xyz[offsets[j]:offsets[j+1]] for every section j in parallel."""
-    for j in prange(offsets.shape[0] - 1):
+    """Run :func:`_one_section` on xyz[offsets[j]:offsets[j+1]] for every section j in parallel,
+    taking the sections in the order of ``sequence`` (largest first, see :func:`detect_section`)."""
+    for s in prange(sequence.shape[0]):
+        j = sequence[s]
         lo, hi = offsets[j], offsets[j + 1]
         outcome[j], fits[j], iterations[j] = _one_section(
             xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol,
@@ -175,10 +179,16 @@ def detect_section(
     fits = np.zeros(m, dtype=np.int64)
     iterations = np.zeros(m, dtype=np.int64)
     if m:
-        _all_sections(
-            xyz_sorted, offsets, var, crit_table, min_points, int(max_iterations),
-            FIT_MAX_ITER, FIT_TOL, score_sorted, flagged_sorted, outcome, fits, iterations,
-        )  # fmt: skip
+        # Section costs differ by orders of magnitude (a mobile strip is a few sections wide):
+        # threads take one section at a time, largest first, so one thread is not left with
+        # several big ones while the other idles.
+        largest_first = np.argsort(-sizes, kind="stable")
+        with numba.parallel_chunksize(1):
+            _all_sections(
+                xyz_sorted, offsets, largest_first, var, crit_table, min_points,
+                int(max_iterations), FIT_MAX_ITER, FIT_TOL, score_sorted, flagged_sorted, outcome,
+                fits, iterations,
+            )  # fmt: skip
     score = np.empty(n)
     score[order] = score_sorted
     flagged = np.empty(n, dtype=bool)

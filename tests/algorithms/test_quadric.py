@@ -14,6 +14,7 @@ from algorithms.quadric import (
     fit_masked,
     fit_quadrics,
     min_patch_size,
+    weighted_moments,
 )
 
 # ---------------------------------------------------------------------------------------------
@@ -247,6 +248,40 @@ def test_fit_masked_equals_fit_of_the_subset():
     assert (it, ok) == (it_ref, ok_ref)
     np.testing.assert_allclose(t[active], T_ref, rtol=1e-9)
     assert np.isnan(t[~active]).all()
+    assert s0 == pytest.approx(s0_ref, rel=1e-9)
+
+
+@pytest.mark.parametrize("n", [1, 40, 256, 257, 1000])
+def test_weighted_moments_match_a_plain_sum(n):
+    # The blocked, vectorised sums against sum_i w_i x^ex y^ey z^ez written out per monomial.
+    rng = np.random.default_rng(n)
+    xyz = rng.normal(0.0, 2.0, (n, 3))
+    weight = rng.random(n) * (rng.random(n) < 0.8)  # some rows weigh nothing (inactive)
+    out = np.empty(35)
+    weighted_moments(xyz, weight, 35, out)
+    exponents = [(i, j, d - i - j) for d in range(5) for i in range(d, -1, -1)
+                 for j in range(d - i, -1, -1)]  # fmt: skip
+    x, y, z = xyz.T
+    expected = [np.sum(weight * x**ex * y**ey * z**ez) for ex, ey, ez in exponents]
+    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    first10 = np.full(35, np.nan)
+    weighted_moments(xyz, weight, 10, first10)
+    np.testing.assert_allclose(first10[:10], out[:10], rtol=1e-12, atol=1e-12)
+
+
+def test_fit_masked_on_a_section_of_several_blocks_matches_slow_reference():
+    # Sections are fitted block by block (256 points); 1,000 points with holes span four blocks.
+    rng = np.random.default_rng(21)
+    pts = random_patches(rng, 1, 1000, "curved", radius=2.0)[0]
+    pts[17, 2] += 0.5
+    active = rng.random(1000) < 0.9
+    params, centroid = np.empty(10), np.empty(3)
+    v, t = np.full(1000, np.nan), np.full(1000, np.nan)
+    var = np.full(3, 0.005**2)
+    s0, it, ok = fit_masked(pts, active, var, 100, 1e-10, params, centroid, v, t, False)
+    a, v_ref, T_ref, s0_ref, it_ref, ok_ref = slow_fit(pts[active], 0.005, 100, 1e-10)
+    assert (it, ok) == (it_ref, ok_ref) and ok
+    np.testing.assert_allclose(t[active], T_ref, rtol=1e-9)
     assert s0 == pytest.approx(s0_ref, rel=1e-9)
 
 
