@@ -55,9 +55,8 @@ The abstract leaves several things open; this implementation decides them as fol
 * **Multiple returns.** All points given are used as they are; a caller that wants last returns
   only selects them before the call.
 
-Triangulation: Shewchuk's Triangle (package ``triangle``) when it is installed, ten times faster
-than scipy's Qhull in 2-D; otherwise ``scipy.spatial.Delaunay``. Both give a Delaunay TIN (they
-may split co-circular quadrilaterals differently).
+Triangulation: :mod:`algorithms.tin` (startin, MIT, by default; Shewchuk's Triangle or scipy's
+Qhull otherwise). All give a Delaunay TIN (they may split co-circular quadrilaterals differently).
 
 Elevations are centred before any arithmetic (XY by the bounding box centre) so that UTM or
 geocentric coordinates lose no precision.
@@ -72,14 +71,9 @@ from typing import Any
 import numpy as np
 from numba import njit
 from scipy.ndimage import distance_transform_edt, grey_opening
-from scipy.spatial import Delaunay
 
+from algorithms.tin import delaunay
 from worker.errors import ParameterError
-
-try:  # Shewchuk's Triangle is ~10x faster than Qhull in 2-D; optional (non-commercial licence).
-    import triangle as _triangle
-except ImportError:  # pragma: no cover - depends on the environment
-    _triangle = None
 
 #: Tolerance growth with the terrain grade in step 6 (metres per unit of tan(slope)), as SMRF's.
 SLOPE_TOLERANCE = 1.2
@@ -302,19 +296,12 @@ def lowest_per_xy(xy: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def triangulate(xy: np.ndarray, backend: str = "auto") -> tuple[np.ndarray, np.ndarray, str]:
-    """Delaunay triangulation of distinct points in XY.
+    """Delaunay triangulation of distinct points in XY (:func:`algorithms.tin.delaunay`).
 
     Returns ``tri`` (m, 3) int64 vertex indices, ``nbr`` (m, 3) int64 edge-adjacent triangles
-    (-1 on the hull) and the name of the triangulator used. ``backend`` "auto" takes
-    Shewchuk's Triangle when it is installed, else "qhull" (scipy.spatial.Delaunay).
+    (-1 on the hull) and the name of the triangulator used.
     """
-    if xy.shape[0] < 3 or np.linalg.matrix_rank(xy - xy.mean(axis=0), tol=1e-9) < 2:
-        return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64), "none"
-    if backend == "triangle" or (backend == "auto" and _triangle is not None):
-        out = _triangle.triangulate({"vertices": xy}, "Qn")
-        return out["triangles"].astype(np.int64), out["neighbors"].astype(np.int64), "triangle"
-    d = Delaunay(xy)
-    return d.simplices.astype(np.int64), d.neighbors.astype(np.int64), "qhull"
+    return delaunay(xy, backend)
 
 
 @njit(cache=True)
