@@ -44,11 +44,34 @@ The abstract leaves several things open; this implementation decides them as fol
 * **Small adjustments.** A point lowered by less than ``min_object_height`` metres was a
   terrain point on a rough or steep slope, not an object: ground in the end.
 * **Terraces.** The iteration cannot tell a building from an upper terrace or an embankment top:
-  both begin at a step and are peeled ring by ring. Refinement (a well-known morphological one,
-  as in SMRF): the lowest point per cell of about one point spacing is rasterised and opened with
-  a square window of ``max_object_size`` metres, which removes objects narrower than the window
-  but keeps wider raised ground. An adjusted point within ``min_object_height + 1.2 * grade`` of
-  that opened surface (grade = its local tan(slope)) is terrain.
+  both begin at a step and are peeled ring by ring. Refinement (a well-known morphological one, the
+  progressive morphological filter of Zhang et al. 2003 as SMRF (Pingel et al. 2013) uses it): the
+  lowest point per cell of about one point spacing is rasterised (empty cells filled, see below)
+  and opened with square windows of growing radius r = 1, 2, ... cells up to half of
+  ``max_object_size``; a cell is an *object cell* when one opening lowers it by more than
+  ``terrain_slope * r * cell`` below the previous opening. Raised ground rises gently, so each
+  wider window lowers it by little; a building is cut away at once by the first window wider than
+  it. An adjusted point in a cell that is not an object cell and within ``min_object_height`` of
+  the cell's lowest point is terrain. This implementation decides: square windows (separable,
+  so the cost does not grow with the window), and at most 16 openings (larger radii are stepped
+  evenly, for dense clouds whose cells are small).
+* **Final classification against the ground surface.** Where the abstract stops (adjusted points
+  are objects, the others terrain), this implementation adds the last step of SMRF and of most
+  surface-based filters: a ground surface is interpolated from the terrain points and every point
+  is classified against it. The surface is the lowest terrain point per cell, kept only in cells
+  that the progressive opening above does not call object cells (both tests must agree that a
+  cell is ground); the other cells are filled by pull-push interpolation (averages over a pyramid
+  of coarser rasters, pulled down into the holes); it is sampled bilinearly at every point. A point
+  is ground when it lies less than ``ground_tolerance + 1.0 * grade`` above the surface (grade =
+  the surface's local tan(slope), since the lowest point of a cell on a slope lies below the
+  others), and not a low outlier; points below the surface are ground. This catches low objects
+  whose steps are below ``min_object_height`` and gives back terrain points the iteration peeled
+  next to steps. ``ground_tolerance = 0`` turns the step off (then the result is that of the
+  iteration, the small adjustments and the terrace check). With the step on, ``adjusted_z`` of an
+  object point is the surface under it.
+* **Raster fill (pull-push).** Empty cells take the weighted mean of the coarser pyramid level
+  (2 x 2 blocks, weights the number of filled cells, capped at 1), recursively: smooth across
+  large holes such as building footprints, exact where cells are filled.
 * **Duplicate XY points.** Only the lowest point of each XY position enters the TIN. The others
   are ground when their representative is ground and they lie within ``min_object_height`` of its
   adjusted elevation; otherwise object.
@@ -71,7 +94,6 @@ from typing import Any
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import distance_transform_edt, grey_opening
 from scipy.spatial import Delaunay
 
 from worker.errors import ParameterError
@@ -81,8 +103,10 @@ try:  # Shewchuk's Triangle is ~10x faster than Qhull in 2-D; optional (non-comm
 except ImportError:  # pragma: no cover - depends on the environment
     _triangle = None
 
-#: Tolerance growth with the terrain grade in step 6 (metres per unit of tan(slope)), as SMRF's.
-SLOPE_TOLERANCE = 1.2
+#: Tolerance growth with the ground surface's grade in step 8 (metres per unit of tan(slope)).
+SURFACE_SLOPE_TOLERANCE = 1.0
+#: Openings at most in the progressive terrace check (step 6); larger radii are stepped evenly.
+MAX_OPENINGS = 16
 #: Quantile of the neighbours' z that a low outlier is compared with (step 3).
 LOW_QUANTILE = 0.25
 
@@ -117,14 +141,17 @@ def classify_ground(
     min_object_height: float = 1.0,
     low_outlier_depth: float = 2.0,
     max_object_size: float = 25.0,
+    terrain_slope: float = 0.2,
+    ground_tolerance: float = 0.5,
 ) -> GroundResult:
     """Separate terrain from object points by iterative elimination of TIN step edges.
 
     Steps: (1) centre; (2) one Delaunay TIN in XY of the lowest point per XY position;
     (3) low outliers raised; (4) step-edge iteration (slope, lower/higher vertices, adjustment by
-    the local slope, re-slope, repeat); (5) small adjustments are terrain; (6) adjusted points
-    within the slope-aware tolerance of the opened lowest-point surface are terrain (terraces);
-    (7) duplicate XY points take their representative's label.
+    the local slope, re-slope, repeat); (5) small adjustments are terrain; (6) adjusted points in
+    cells that the progressive opening keeps as ground are terrain (terraces); (7) duplicate XY
+    points take their representative's label; (8) every point is classified against the ground
+    surface interpolated from the terrain points.
 
     Parameters
     ----------
@@ -140,15 +167,23 @@ def classify_ground(
         Metres (> 0): a point this far below the lower quartile of its ~24 neighbours is a low
         outlier.
     max_object_size : float
-        Metres (>= 0, 0 disables step 6): width of the opening window; raised ground wider than
-        this is terrain, objects wider than this can be missed.
+        Metres (>= 0, 0 disables step 6 and the object-cell test of step 8): width of the largest
+        opening window; raised ground wider than this is terrain, objects wider than this can be
+        missed.
+    terrain_slope : float
+        tan of a slope (>= 0): the progressive opening flags a cell as object when a window of
+        radius r lowers it by more than ``terrain_slope * r`` metres per metre of cell.
+    ground_tolerance : float
+        Metres (>= 0, 0 disables step 8): a point less than this (plus 1.0 x the local grade)
+        above the ground surface is ground.
 
     Returns
     -------
     GroundResult
     """
     xyz = _check_input(
-        xyz, slope_threshold, max_iterations, min_object_height, low_outlier_depth, max_object_size
+        xyz, slope_threshold, max_iterations, min_object_height, low_outlier_depth,
+        max_object_size, terrain_slope, ground_tolerance,
     )
     n = xyz.shape[0]
     params = {
@@ -157,6 +192,8 @@ def classify_ground(
         "min_object_height": float(min_object_height),
         "low_outlier_depth": float(low_outlier_depth),
         "max_object_size": float(max_object_size),
+        "terrain_slope": float(terrain_slope),
+        "ground_tolerance": float(ground_tolerance),
     }
     if n < 3:
         return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
@@ -180,15 +217,26 @@ def classify_ground(
     )
     adjusted &= ~low
     small = adjusted & (z - z_adj < min_object_height)  # step 5
-    terrace = np.zeros(n, bool)
+    geo = RasterGeometry.fit(xy)
+    lowest = fill_pull_push(*lowest_per_cell(geo, z_raised))
+    object_cells = np.zeros(geo.shape, bool)
     if max_object_size > 0:  # step 6
-        opened, grade = opened_minimum_surface(xy, z_raised, max_object_size)
-        terrace = adjusted & ~small & (z - opened < min_object_height + SLOPE_TOLERANCE * grade)
+        object_cells = progressive_object_cells(lowest, geo.cell, max_object_size, terrain_slope)
+        cell_low = lowest.reshape(-1)[geo.flat]
+        on_ground = ~object_cells.reshape(-1)[geo.flat]
+        terrace = adjusted & ~small & on_ground & (z_raised - cell_low < min_object_height)
+    else:
+        terrace = np.zeros(n, bool)
     is_ground = ~low & (~adjusted | small | terrace)
     z_adj[is_ground] = z[is_ground]
     is_ground, z_adj = _resolve_duplicates(  # step 7
         z, z_adj, rep, unique_idx, is_ground, min_object_height
     )
+    preliminary = int(np.count_nonzero(is_ground))
+    if ground_tolerance > 0 and is_ground.any():  # step 8
+        surface, grade = ground_surface(geo, xy, z, is_ground, object_cells)
+        is_ground = ~low & (z - surface < ground_tolerance + SURFACE_SLOPE_TOLERANCE * grade)
+        z_adj = np.where(is_ground, z, surface)
 
     info = {
         **params,
@@ -204,6 +252,7 @@ def classify_ground(
         "converged": bool(not pending.any()),
         "small_adjustments": int(np.count_nonzero(small)),
         "terrace_points": int(np.count_nonzero(terrace)),
+        "preliminary_ground_points": preliminary,
         "ground_points": int(np.count_nonzero(is_ground)),
     }
     return GroundResult(is_ground, z_adj + _z_offset(xyz), info)
@@ -228,6 +277,7 @@ def _empty_info(params: dict[str, Any], n: int) -> dict[str, Any]:
         "converged": True,
         "small_adjustments": 0,
         "terrace_points": 0,
+        "preliminary_ground_points": int(n),
         "ground_points": int(n),
     }
 
@@ -239,6 +289,8 @@ def _check_input(
     min_object_height: float,
     low_outlier_depth: float,
     max_object_size: float,
+    terrain_slope: float,
+    ground_tolerance: float,
 ) -> np.ndarray:
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -255,6 +307,10 @@ def _check_input(
         raise ParameterError(f"low_outlier_depth must be > 0 metres, got {low_outlier_depth!r}")
     if not max_object_size >= 0.0:
         raise ParameterError(f"max_object_size must be >= 0 metres, got {max_object_size!r}")
+    if not terrain_slope >= 0.0:
+        raise ParameterError(f"terrain_slope must be >= 0, got {terrain_slope!r}")
+    if not ground_tolerance >= 0.0:
+        raise ParameterError(f"ground_tolerance must be >= 0 metres, got {ground_tolerance!r}")
     return xyz
 
 
@@ -653,34 +709,177 @@ def find_low_outliers(
     return z < ref - depth, ref
 
 
-def opened_minimum_surface(
-    xy: np.ndarray, z: np.ndarray, window: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Morphological opening of the lowest-point raster and its grade, sampled at the points.
+@dataclass
+class RasterGeometry:
+    """A grid of square cells over the points' XY extent and each point's cell.
 
-    Cells of about one point spacing hold the lowest z that falls in them (empty cells take their
-    nearest filled cell); a grey opening with a square of ``window`` metres removes everything
-    narrower than the window (objects) but keeps wider raised ground (terraces, embankment tops).
-    Returns the opened surface (n,) and its grade |grad z| (n,) by differences on the raster.
+    Attributes: ``lo`` (2,) the grid's lower-left corner, ``cell`` the cell size in metres,
+    ``shape`` (nx, ny) and ``flat`` (n,) the row-major cell index of each point.
     """
-    n = z.shape[0]
-    lo = xy.min(axis=0)
-    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
-    cell = max(float(np.sqrt(ext[0] * ext[1] / n)), 1e-3)
-    shape = (ext / cell).astype(np.int64) + 1
-    ij = ((xy - lo) / cell).astype(np.int64)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
-    grid = np.full(shape[0] * shape[1], np.inf)
-    np.minimum.at(grid, flat, z)
-    grid = grid.reshape(shape)
-    empty = ~np.isfinite(grid)
-    if empty.any():
-        _, (ii, jj) = distance_transform_edt(empty, return_indices=True)
-        grid = grid[ii, jj]
-    w = max(int(round(window / cell)) | 1, 1)
-    opened = grey_opening(grid, size=(w, w))
+
+    lo: np.ndarray
+    cell: float
+    shape: tuple[int, int]
+    flat: np.ndarray
+
+    @classmethod
+    def fit(cls, xy: np.ndarray, spacings: float = 1.0) -> RasterGeometry:
+        """Cells ``spacings`` mean point spacings wide (mean spacing = sqrt(area / n))."""
+        n = xy.shape[0]
+        lo = xy.min(axis=0)
+        ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
+        cell = max(spacings * float(np.sqrt(ext[0] * ext[1] / n)), 1e-3)
+        shape = (ext / cell).astype(np.int64) + 1
+        ij = ((xy - lo) / cell).astype(np.int64)
+        return cls(lo, cell, (int(shape[0]), int(shape[1])), ij[:, 0] * shape[1] + ij[:, 1])
+
+
+def lowest_per_cell(
+    geo: RasterGeometry, z: np.ndarray, mask: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest z per cell (of the points in ``mask``, default all): grid and filled-cell mask."""
+    flat, vals = (geo.flat, z) if mask is None else (geo.flat[mask], z[mask])
+    grid = np.full(geo.shape[0] * geo.shape[1], np.inf)
+    np.minimum.at(grid, flat, vals)
+    grid = grid.reshape(geo.shape)
+    return grid, np.isfinite(grid)
+
+
+def fill_pull_push(grid: np.ndarray, filled: np.ndarray) -> np.ndarray:
+    """Fill the cells where ``filled`` is False by pull-push interpolation; others are kept.
+
+    Pull: each coarser level holds per 2 x 2 block the mean of its filled cells and a weight, the
+    number of filled cells capped at 1. Push: from the coarsest level down, a cell becomes
+    ``w * own + (1 - w) * parent``. An all-empty grid gives zeros.
+    """
+    if filled.all():
+        return grid
+    levels = [(np.where(filled, grid, 0.0), filled.astype(np.float64))]
+    while max(levels[-1][0].shape) > 1:
+        val, wt = levels[-1]
+        nx, ny = -(-val.shape[0] // 2), -(-val.shape[1] // 2)
+        sv = np.zeros((2 * nx, 2 * ny))
+        sw = np.zeros((2 * nx, 2 * ny))
+        sv[: val.shape[0], : val.shape[1]] = val * wt
+        sw[: val.shape[0], : val.shape[1]] = wt
+        sv = sv.reshape(nx, 2, ny, 2).sum(axis=(1, 3))
+        sw = sw.reshape(nx, 2, ny, 2).sum(axis=(1, 3))
+        levels.append((sv / np.maximum(sw, 1e-300), np.minimum(sw, 1.0)))
+    val = levels[-1][0]
+    for own, wt in reversed(levels[:-1]):
+        parent = np.repeat(np.repeat(val, 2, axis=0), 2, axis=1)[: own.shape[0], : own.shape[1]]
+        val = wt * own + (1.0 - wt) * parent
+    return np.where(filled, grid, val)
+
+
+def opening_radii(window: float, cell: float, most: int = MAX_OPENINGS) -> np.ndarray:
+    """Window radii in cells, 1 up to half of ``window``: every one, or ``most`` evenly stepped."""
+    top = max(int(round(window / (2.0 * cell))), 1)
+    if top <= most:
+        return np.arange(1, top + 1)
+    return np.unique(np.round(np.linspace(1, top, most)).astype(np.int64))
+
+
+@njit(cache=True)
+def _filter_rows(a: np.ndarray, r: int, take_max: bool) -> np.ndarray:
+    """Running min (or max) over ``2 r + 1`` cells along each row, edges extended (van Herk /
+    Gil-Werman: two block-wise prefix scans, about three comparisons per cell for any window)."""
+    nx, ny = a.shape
+    w = 2 * r + 1
+    length = ny + 2 * r
+    padded = -(-length // w) * w
+    out = np.empty_like(a)
+    p = np.empty(padded)
+    g = np.empty(padded)
+    h = np.empty(padded)
+    for i in range(nx):
+        for j in range(padded):
+            src = min(max(j - r, 0), ny - 1)
+            p[j] = a[i, src]
+        for b in range(0, padded, w):
+            g[b] = p[b]
+            for j in range(b + 1, b + w):
+                g[j] = max(g[j - 1], p[j]) if take_max else min(g[j - 1], p[j])
+            h[b + w - 1] = p[b + w - 1]
+            for j in range(b + w - 2, b - 1, -1):
+                h[j] = max(h[j + 1], p[j]) if take_max else min(h[j + 1], p[j])
+        for j in range(ny):
+            out[i, j] = max(h[j], g[j + w - 1]) if take_max else min(h[j], g[j + w - 1])
+    return out
+
+
+def square_opening(grid: np.ndarray, r: int) -> np.ndarray:
+    """Grey opening with a (2r+1) x (2r+1) square, edges extended (scipy's ``mode="nearest"``)."""
+    eroded = _filter_rows(np.ascontiguousarray(_filter_rows(grid, r, False).T), r, False)
+    return _filter_rows(np.ascontiguousarray(_filter_rows(eroded, r, True).T), r, True)
+
+
+def progressive_object_cells(
+    grid: np.ndarray, cell: float, window: float, slope: float
+) -> np.ndarray:
+    """Progressive morphological filter (Zhang et al. 2003; SMRF, Pingel et al. 2013) on a raster.
+
+    Opens ``grid`` with squares of radius r (:func:`opening_radii`); a cell whose opening at
+    radius r lies more than ``slope * r * cell`` below the opening at the previous radius (the grid
+    itself before the first) is an object cell. Returns the (nx, ny) bool mask.
+    """
+    grid = np.ascontiguousarray(grid, dtype=np.float64)
+    obj = np.zeros(grid.shape, bool)
+    prev = grid
+    for r in opening_radii(window, cell):
+        opened = square_opening(grid, int(r))
+        obj |= prev - opened > slope * r * cell
+        prev = opened
+    return obj
+
+
+def ground_surface(
+    geo: RasterGeometry,
+    xy: np.ndarray,
+    z: np.ndarray,
+    is_ground: np.ndarray,
+    object_cells: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ground surface under every point and its grade (step 8), both (n,).
+
+    Lowest ground point per cell, kept where the cell is not an object cell, filled by pull-push,
+    sampled bilinearly between cell centres; grade = |grad| of the filled raster by differences.
+    """
+    grid, filled = lowest_per_cell(geo, z, is_ground)
+    filled &= ~object_cells
+    if not filled.any():  # every ground cell is an object cell: fall back to all ground cells
+        grid, filled = lowest_per_cell(geo, z, is_ground)
+    surface = fill_pull_push(grid, filled)
     # a raster one cell thin (a narrow strip of points) has no slope across it
-    gx = np.gradient(opened, cell, axis=0) if shape[0] > 1 else np.zeros_like(opened)
-    gy = np.gradient(opened, cell, axis=1) if shape[1] > 1 else np.zeros_like(opened)
-    grade = np.hypot(gx, gy)
-    return opened.reshape(-1)[flat], grade.reshape(-1)[flat]
+    gx = np.gradient(surface, geo.cell, axis=0) if geo.shape[0] > 1 else np.zeros(geo.shape)
+    gy = np.gradient(surface, geo.cell, axis=1) if geo.shape[1] > 1 else np.zeros(geo.shape)
+    return bilinear(surface, np.hypot(gx, gy), (xy - geo.lo) / geo.cell - 0.5)
+
+
+@njit(cache=True)
+def bilinear(
+    a: np.ndarray, b: np.ndarray, ij: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Two rasters sampled bilinearly at fractional cell coordinates ``ij`` (n, 2), where cell
+    (i, j) has its value at (i, j); outside the raster the nearest edge value is taken (as
+    ``scipy.ndimage.map_coordinates(order=1, mode="nearest")``)."""
+    nx, ny = a.shape
+    n = ij.shape[0]
+    out_a = np.empty(n)
+    out_b = np.empty(n)
+    for k in range(n):
+        fi = min(max(ij[k, 0], 0.0), nx - 1.0)
+        fj = min(max(ij[k, 1], 0.0), ny - 1.0)
+        i0 = min(int(fi), max(nx - 2, 0))
+        j0 = min(int(fj), max(ny - 2, 0))
+        i1 = min(i0 + 1, nx - 1)
+        j1 = min(j0 + 1, ny - 1)
+        ti = fi - i0
+        tj = fj - j0
+        w00 = (1.0 - ti) * (1.0 - tj)
+        w01 = (1.0 - ti) * tj
+        w10 = ti * (1.0 - tj)
+        w11 = ti * tj
+        out_a[k] = w00 * a[i0, j0] + w01 * a[i0, j1] + w10 * a[i1, j0] + w11 * a[i1, j1]
+        out_b[k] = w00 * b[i0, j0] + w01 * b[i0, j1] + w10 * b[i1, j0] + w11 * b[i1, j1]
+    return out_a, out_b
