@@ -199,6 +199,8 @@ def classify_ground(
         return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
 
     xy, z = centre(xyz)  # step 1
+    perm = spatial_order(xy)  # work in a cache-friendly order; results go back at the end
+    xy, z = np.ascontiguousarray(xy[perm]), z[perm]
     rep, unique_idx = lowest_per_xy(xy, z)  # step 2
     tri, nbr, name = triangulate(xy[unique_idx])
     if tri.shape[0] == 0:  # all points collinear in XY: nothing to triangulate, nothing to filter
@@ -255,7 +257,9 @@ def classify_ground(
         "preliminary_ground_points": preliminary,
         "ground_points": int(np.count_nonzero(is_ground)),
     }
-    return GroundResult(is_ground, z_adj + _z_offset(xyz), info)
+    out_ground, out_z = np.empty(n, bool), np.empty(n)
+    out_ground[perm], out_z[perm] = is_ground, z_adj
+    return GroundResult(out_ground, out_z + _z_offset(xyz), info)
 
 
 def _z_offset(xyz: np.ndarray) -> float:
@@ -323,6 +327,26 @@ def centre(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xy = xyz[:, :2] - 0.5 * (lo + hi)
     z = xyz[:, 2] - _z_offset(xyz)
     return np.ascontiguousarray(xy), np.ascontiguousarray(z)
+
+
+def spatial_order(xy: np.ndarray) -> np.ndarray:
+    """A permutation that sorts the points by their cell of the low-outlier grid (row-major).
+
+    Stable, so points with the same XY keep their order. Points near in space are then near in
+    memory: Triangle triangulates about 30 % faster and the iteration's lookups hit the cache.
+    """
+    return np.argsort(_low_grid(xy)[0], kind="stable")
+
+
+def _low_grid(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row-major cell index of each point in the grid of 1.6 mean point spacings, and its shape."""
+    n = xy.shape[0]
+    lo = xy.min(axis=0)
+    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
+    cell = max(1.6 * math.sqrt(ext[0] * ext[1] / n), 1e-6)
+    shape = (ext / cell).astype(np.int64) + 1
+    ij = ((xy - lo) / cell).astype(np.int64)
+    return ij[:, 0] * shape[1] + ij[:, 1], shape
 
 
 def lowest_per_xy(xy: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -654,13 +678,7 @@ def _low_reference(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
     Cells are 1.6 mean point spacings wide, so a block holds about 24 points: a cheap
     stand-in for the k nearest neighbours (a k-d tree query costs more than the whole TIN).
     """
-    n = z.shape[0]
-    lo = xy.min(axis=0)
-    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
-    cell = max(1.6 * math.sqrt(ext[0] * ext[1] / n), 1e-6)
-    shape = (ext / cell).astype(np.int64) + 1
-    ij = ((xy - lo) / cell).astype(np.int64)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    flat, shape = _low_grid(xy)
     order = np.argsort(flat, kind="stable")
     ptr = np.searchsorted(flat[order], np.arange(shape[0] * shape[1] + 1))
     ref_cell = _block_quartiles(z[order], ptr, int(shape[0]), int(shape[1]), LOW_QUANTILE)
@@ -689,9 +707,33 @@ def _block_quartiles(
                     for p in range(ptr[cc], ptr[cc + 1]):
                         buf[m] = z_sorted[p]
                         m += 1
-            vals = np.sort(buf[:m])
-            out[c] = vals[int(q * (m - 1))]
+            out[c] = _select(buf, m, int(q * (m - 1)))
     return out
+
+
+@njit(cache=True)
+def _select(buf: np.ndarray, m: int, k: int) -> float:
+    """The k-th smallest of ``buf[:m]`` (0-based) by quickselect, reordering ``buf[:m]``."""
+    lo, hi = 0, m - 1
+    while lo < hi:
+        pivot = buf[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while buf[i] < pivot:
+                i += 1
+            while buf[j] > pivot:
+                j -= 1
+            if i <= j:
+                buf[i], buf[j] = buf[j], buf[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return buf[k]
 
 
 def find_low_outliers(
@@ -756,20 +798,44 @@ def fill_pull_push(grid: np.ndarray, filled: np.ndarray) -> np.ndarray:
         return grid
     levels = [(np.where(filled, grid, 0.0), filled.astype(np.float64))]
     while max(levels[-1][0].shape) > 1:
-        val, wt = levels[-1]
-        nx, ny = -(-val.shape[0] // 2), -(-val.shape[1] // 2)
-        sv = np.zeros((2 * nx, 2 * ny))
-        sw = np.zeros((2 * nx, 2 * ny))
-        sv[: val.shape[0], : val.shape[1]] = val * wt
-        sw[: val.shape[0], : val.shape[1]] = wt
-        sv = sv.reshape(nx, 2, ny, 2).sum(axis=(1, 3))
-        sw = sw.reshape(nx, 2, ny, 2).sum(axis=(1, 3))
-        levels.append((sv / np.maximum(sw, 1e-300), np.minimum(sw, 1.0)))
+        levels.append(_pull(*levels[-1]))
     val = levels[-1][0]
     for own, wt in reversed(levels[:-1]):
-        parent = np.repeat(np.repeat(val, 2, axis=0), 2, axis=1)[: own.shape[0], : own.shape[1]]
-        val = wt * own + (1.0 - wt) * parent
+        val = _push(own, wt, val)
     return np.where(filled, grid, val)
+
+
+@njit(cache=True)
+def _pull(val: np.ndarray, wt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One coarser pyramid level: weighted block means over 2 x 2 cells, weights capped at 1."""
+    nx, ny = val.shape
+    cx, cy = (nx + 1) // 2, (ny + 1) // 2
+    sv = np.zeros((cx, cy))
+    sw = np.zeros((cx, cy))
+    for i in range(nx):
+        for j in range(ny):
+            w = wt[i, j]
+            if w > 0.0:
+                sv[i // 2, j // 2] += val[i, j] * w
+                sw[i // 2, j // 2] += w
+    for i in range(cx):
+        for j in range(cy):
+            if sw[i, j] > 0.0:
+                sv[i, j] /= sw[i, j]
+                sw[i, j] = min(sw[i, j], 1.0)
+    return sv, sw
+
+
+@njit(cache=True)
+def _push(own: np.ndarray, wt: np.ndarray, parent: np.ndarray) -> np.ndarray:
+    """A level from its own values and the filled coarser one: ``w * own + (1 - w) * parent``."""
+    nx, ny = own.shape
+    out = np.empty((nx, ny))
+    for i in range(nx):
+        for j in range(ny):
+            w = wt[i, j]
+            out[i, j] = w * own[i, j] + (1.0 - w) * parent[i // 2, j // 2]
+    return out
 
 
 def opening_radii(window: float, cell: float, most: int = MAX_OPENINGS) -> np.ndarray:
@@ -789,9 +855,9 @@ def _filter_rows(a: np.ndarray, r: int, take_max: bool) -> np.ndarray:
     length = ny + 2 * r
     padded = -(-length // w) * w
     out = np.empty_like(a)
-    p = np.empty(padded)
-    g = np.empty(padded)
-    h = np.empty(padded)
+    p = np.empty(padded, a.dtype)
+    g = np.empty(padded, a.dtype)
+    h = np.empty(padded, a.dtype)
     for i in range(nx):
         for j in range(padded):
             src = min(max(j - r, 0), ny - 1)
@@ -821,14 +887,15 @@ def progressive_object_cells(
 
     Opens ``grid`` with squares of radius r (:func:`opening_radii`); a cell whose opening at
     radius r lies more than ``slope * r * cell`` below the opening at the previous radius (the grid
-    itself before the first) is an object cell. Returns the (nx, ny) bool mask.
+    itself before the first) is an object cell. Returns the (nx, ny) bool mask. Works in float32
+    (half the memory traffic; elevations are centred, so a float32 step is below 0.1 mm).
     """
-    grid = np.ascontiguousarray(grid, dtype=np.float64)
+    grid = np.ascontiguousarray(grid, dtype=np.float32)
     obj = np.zeros(grid.shape, bool)
     prev = grid
     for r in opening_radii(window, cell):
         opened = square_opening(grid, int(r))
-        obj |= prev - opened > slope * r * cell
+        obj |= prev - opened > np.float32(slope * r * cell)
         prev = opened
     return obj
 

@@ -341,6 +341,16 @@ def test_square_opening_matches_loops(shape, r):
     np.testing.assert_array_equal(G.square_opening(a, r), slow_opening(a, r))
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_select_is_the_kth_smallest(seed):
+    rng = np.random.default_rng(seed)
+    for m in [1, 2, 3, 7, 24, 100]:
+        vals = rng.integers(0, 6, m).astype(float) if seed % 2 else rng.random(m)
+        for k in {0, m // 4, m // 2, m - 1}:
+            buf = np.concatenate([vals, [-1.0, 99.0]])  # entries past m must not count
+            assert G._select(buf, m, k) == np.sort(vals)[k]
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_pull_push_matches_recursion_and_keeps_filled_cells(seed):
     rng = np.random.default_rng(seed)
@@ -379,11 +389,13 @@ def test_opening_radii_every_cell_then_stepped():
 
 
 def slow_object_cells(grid, cell, window, slope):
+    """The progressive filter with the plain-loop opening, in float32 as the fast one."""
+    grid = grid.astype(np.float32)
     obj = np.zeros(grid.shape, bool)
     prev = grid
     for r in G.opening_radii(window, cell):
         opened = slow_opening(grid, int(r))
-        obj |= prev - opened > slope * r * cell
+        obj |= prev - opened > np.float32(slope * r * cell)
         prev = opened
     return obj
 
