@@ -13,11 +13,12 @@ The abstract leaves several things open; this implementation decides them as fol
   ``atan(|grad z|)`` with ``grad z`` the plane's gradient in XY, i.e. ``arccos(|n_z| / |n|)`` of
   its normal ``n``. A triangle is a *step-edge triangle* when that angle exceeds
   ``slope_threshold``.
-* **Lower and higher vertices.** The *lower* vertex is the lowest of the three (ties: the smaller
-  point index). A vertex is *higher* (an object candidate) when the edge joining it to the lower
-  vertex is itself steeper than the threshold: ``z_v - z_l > tan(threshold) * |p_v - p_l|``. So in
-  a triangle with two ground points and one roof point only the roof point moves, and a thin sliver
-  whose plane is steep although none of its edges is (possible on the hull) adjusts nothing.
+* **Lower and higher vertices.** The *lower* vertex is the lowest of the three (ties: the one
+  first in the spatial order below). A vertex is *higher* (an object candidate) when the edge
+  joining it to the lower vertex is itself steeper than the threshold:
+  ``z_v - z_l > tan(threshold) * |p_v - p_l|``. So in a triangle with two ground points and one
+  roof point only the roof point moves, and a thin sliver whose plane is steep although none of
+  its edges is (possible on the hull) adjusts nothing.
 * **Interpolation.** The local slope ``g`` is the mean plane gradient of the edge triangle's
   (up to three) edge-adjacent neighbours that are not step-edge triangles (``g = 0`` when there is
   none). The candidate's proposal is ``z_l + g . (p_v - p_l)``, the terrain extended from the lower
@@ -57,24 +58,31 @@ The abstract leaves several things open; this implementation decides them as fol
   evenly, for dense clouds whose cells are small).
 * **Final classification against the ground surface.** Where the abstract stops (adjusted points
   are objects, the others terrain), this implementation adds the last step of SMRF and of most
-  surface-based filters: a ground surface is interpolated from the terrain points and every point
-  is classified against it. The surface is the lowest terrain point per cell, kept only in cells
-  that the progressive opening above does not call object cells (both tests must agree that a
-  cell is ground); the other cells are filled by pull-push interpolation (averages over a pyramid
-  of coarser rasters, pulled down into the holes); it is sampled bilinearly at every point. A point
-  is ground when it lies less than ``ground_tolerance + 1.0 * grade`` above the surface (grade =
-  the surface's local tan(slope), since the lowest point of a cell on a slope lies below the
-  others), and not a low outlier; points below the surface are ground. This catches low objects
-  whose steps are below ``min_object_height`` and gives back terrain points the iteration peeled
-  next to steps. ``ground_tolerance = 0`` turns the step off (then the result is that of the
-  iteration, the small adjustments and the terrace check). With the step on, ``adjusted_z`` of an
-  object point is the surface under it.
+  surface-based filters: a ground surface is interpolated from the terrain points of steps 4-7
+  and every point is classified against it. The surface is the lowest terrain point per cell
+  (cells of one point spacing), the other cells filled by pull-push interpolation (below), sampled
+  bilinearly at every point. A point is ground when it lies less than
+  ``ground_tolerance + 1.0 * grade`` above the surface (grade = the surface's local tan(slope),
+  since the lowest point of a cell on a slope lies below the others), and not a low outlier;
+  points below the surface are ground. This catches low objects and vegetation whose steps are
+  below ``min_object_height`` or not steep enough, and gives back terrain points that the
+  iteration peeled next to steps. ``ground_tolerance = 0`` turns the step off (then the result
+  is that of steps 4-7). With the step on, ``adjusted_z`` of an object point is the surface
+  under it.
 * **Raster fill (pull-push).** Empty cells take the weighted mean of the coarser pyramid level
   (2 x 2 blocks, weights the number of filled cells, capped at 1), recursively: smooth across
   large holes such as building footprints, exact where cells are filled.
 * **Duplicate XY points.** Only the lowest point of each XY position enters the TIN. The others
   are ground when their representative is ground and they lie within ``min_object_height`` of its
   adjusted elevation; otherwise object.
+* **Defaults.** With the refinements above the iteration is best at a lower threshold than the
+  45 degrees used on its own: ``slope_threshold = 35`` and ``min_object_height = 0.5`` m, one set
+  for all seven ISPRS samples (mean total error 4.54 %; 4.86 % at 45 degrees, 5.06 % at 45 degrees
+  and 1 m). Step 8 builds its surface from the iteration's terrain points, so the iteration's
+  answer still decides which cells carry the surface.
+* **Spatial order.** The points are first sorted (stably) by their cell of the low-outlier grid
+  and the results put back in the caller's order at the end: Triangle triangulates spatially
+  sorted points about 30 % faster and the iteration's lookups stay in the cache.
 * **Multiple returns.** All points given are used as they are; a caller that wants last returns
   only selects them before the call.
 
@@ -136,9 +144,9 @@ class GroundResult:
 def classify_ground(
     xyz: np.ndarray,
     *,
-    slope_threshold: float = 45.0,
+    slope_threshold: float = 35.0,
     max_iterations: int = 1000,
-    min_object_height: float = 1.0,
+    min_object_height: float = 0.5,
     low_outlier_depth: float = 2.0,
     max_object_size: float = 25.0,
     terrain_slope: float = 0.2,
@@ -167,9 +175,8 @@ def classify_ground(
         Metres (> 0): a point this far below the lower quartile of its ~24 neighbours is a low
         outlier.
     max_object_size : float
-        Metres (>= 0, 0 disables step 6 and the object-cell test of step 8): width of the largest
-        opening window; raised ground wider than this is terrain, objects wider than this can be
-        missed.
+        Metres (>= 0, 0 disables step 6): width of the largest opening window; raised ground
+        wider than this is terrain, objects wider than this can be missed.
     terrain_slope : float
         tan of a slope (>= 0): the progressive opening flags a cell as object when a window of
         radius r lowers it by more than ``terrain_slope * r`` metres per metre of cell.
@@ -221,7 +228,6 @@ def classify_ground(
     small = adjusted & (z - z_adj < min_object_height)  # step 5
     geo = RasterGeometry.fit(xy)
     lowest = fill_pull_push(*lowest_per_cell(geo, z_raised))
-    object_cells = np.zeros(geo.shape, bool)
     if max_object_size > 0:  # step 6
         object_cells = progressive_object_cells(lowest, geo.cell, max_object_size, terrain_slope)
         cell_low = lowest.reshape(-1)[geo.flat]
@@ -236,7 +242,7 @@ def classify_ground(
     )
     preliminary = int(np.count_nonzero(is_ground))
     if ground_tolerance > 0 and is_ground.any():  # step 8
-        surface, grade = ground_surface(geo, xy, z, is_ground, object_cells)
+        surface, grade = ground_surface(geo, xy, z, is_ground)
         is_ground = ~low & (z - surface < ground_tolerance + SURFACE_SLOPE_TOLERANCE * grade)
         z_adj = np.where(is_ground, z, surface)
 
@@ -901,21 +907,14 @@ def progressive_object_cells(
 
 
 def ground_surface(
-    geo: RasterGeometry,
-    xy: np.ndarray,
-    z: np.ndarray,
-    is_ground: np.ndarray,
-    object_cells: np.ndarray,
+    geo: RasterGeometry, xy: np.ndarray, z: np.ndarray, is_ground: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The ground surface under every point and its grade (step 8), both (n,).
 
-    Lowest ground point per cell, kept where the cell is not an object cell, filled by pull-push,
-    sampled bilinearly between cell centres; grade = |grad| of the filled raster by differences.
+    Lowest ground point per cell, the other cells filled by pull-push, sampled bilinearly between
+    cell centres; grade = |grad| of the filled raster by differences.
     """
     grid, filled = lowest_per_cell(geo, z, is_ground)
-    filled &= ~object_cells
-    if not filled.any():  # every ground cell is an object cell: fall back to all ground cells
-        grid, filled = lowest_per_cell(geo, z, is_ground)
     surface = fill_pull_push(grid, filled)
     # a raster one cell thin (a narrow strip of points) has no slope across it
     gx = np.gradient(surface, geo.cell, axis=0) if geo.shape[0] > 1 else np.zeros(geo.shape)

@@ -83,7 +83,7 @@ class GroundParams(_Stage):
 
     detector: Literal["ground"] = "ground"
     slope_threshold: float = Field(
-        45.0, gt=0.0, lt=90.0,
+        35.0, gt=0.0, lt=90.0,
         description="Triangle slope in degrees above which it is a step edge.",
     )
     max_iterations: int = Field(
@@ -91,7 +91,7 @@ class GroundParams(_Stage):
         description="Adjust-and-retest rounds at most (one round peels one ring off an object).",
     )
     min_object_height: float = Field(
-        1.0, ge=0.0, le=100.0,
+        0.5, ge=0.0, le=100.0,
         description="Metres: least rise of a step edge; points lowered by less are ground.",
     )
     low_outlier_depth: float = Field(

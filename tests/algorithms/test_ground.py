@@ -414,19 +414,30 @@ def test_progressive_object_cells_box_versus_ramp():
 
 
 # ---------------------------------------------------------------- refinements on whole clouds
-def test_low_object_below_min_object_height_is_caught_by_the_final_step():
-    xyz, truth = scene()
-    x, y = xyz[:, 0], xyz[:, 1]
-    car = (np.abs(x - 55) < 2.5) & (np.abs(y - 15) < 1.2)  # a car, 0.8 m above the terrain
-    xyz[car, 2] += 0.8
-    truth = truth & ~car
+def test_terrain_peeled_at_a_steep_slope_is_given_back_by_the_final_step():
+    """A 40 degree slope between two levels is steeper than the threshold: the iteration peels
+    points at its foot and top; the final step finds them on the interpolated surface."""
+    rng = np.random.default_rng(6)
+    n = 6000
+    x, y = rng.random(n) * 100, rng.random(n) * 60
+    z = np.clip((x - 50) * math.tan(math.radians(40)), 0, 8) + 0.05 * rng.standard_normal(n)
+    xyz = np.column_stack([x, y, z])
     res = classify_ground(xyz)
-    assert not res.is_ground[car].any()
-    assert res.info["preliminary_ground_points"] > res.info["ground_points"] - 5
-    # without the final step the iteration alone ignores steps below min_object_height
     bare = classify_ground(xyz, ground_tolerance=0.0)
-    assert bare.is_ground[car].all()
-    assert ground_scores(truth, res.is_ground)["type_i_pct"] < 0.5
+    assert bare.is_ground.mean() < 0.97  # the iteration and the terrace check alone
+    assert bare.info["ground_points"] == bare.info["preliminary_ground_points"]
+    assert res.info["preliminary_ground_points"] == bare.info["ground_points"]
+    assert res.is_ground.mean() > 0.995
+
+
+def test_final_step_keeps_objects_and_puts_them_on_the_surface():
+    xyz, truth = scene()
+    res = classify_ground(xyz)
+    assert ground_scores(truth, res.is_ground)["type_ii_pct"] == 0.0
+    plane = 0.1 * xyz[:, 0] + 0.05 * xyz[:, 1]
+    # adjusted_z of the objects is the interpolated surface: close to the plane under them (pull-
+    # push is smooth but not exact on a plane: its coarse levels average across the 12 m hole)
+    assert np.max(np.abs(res.adjusted_z[~truth] - plane[~truth])) < 0.8
 
 
 def test_embankment_stays_ground_through_the_final_step():
@@ -458,16 +469,16 @@ def isprs_scores() -> dict[str, dict]:
 
 def test_isprs_mean_total_error_bound(isprs_scores):
     mean_total = np.mean([s["total_error_pct"] for s in isprs_scores.values()])
-    assert mean_total < 4.7  # 4.57 % measured with the defaults (PDAL SMRF: 4.65 %)
+    assert mean_total < 4.65  # 4.54 % measured with the defaults; PDAL SMRF's defaults: 4.65 %
 
 
 @pytest.mark.parametrize("name", SAMPLES)
 def test_isprs_per_sample_sanity(isprs_scores, name):
     s = isprs_scores[name]
     assert s["total_error_pct"] < 12.0  # samp11 (steep urban slopes) is the worst, at 10.7 %
-    assert s["kappa"] > 0.52  # samp61 (few objects) is the lowest, at 0.56
-    assert s["type_i_pct"] < 11.0
-    assert s["type_ii_pct"] < 15.0
+    assert s["kappa"] > 0.58  # samp61 (few objects) is the lowest, at 0.62
+    assert s["type_i_pct"] < 10.0  # samp11: 9.0 %
+    assert s["type_ii_pct"] < 14.0  # samp11: 13.0 %
 
 
 def test_parameter_model_defaults_are_the_function_defaults():
