@@ -13,11 +13,12 @@ The abstract leaves several things open; this implementation decides them as fol
   ``atan(|grad z|)`` with ``grad z`` the plane's gradient in XY, i.e. ``arccos(|n_z| / |n|)`` of
   its normal ``n``. A triangle is a *step-edge triangle* when that angle exceeds
   ``slope_threshold``.
-* **Lower and higher vertices.** The *lower* vertex is the lowest of the three (ties: the smaller
-  point index). A vertex is *higher* (an object candidate) when the edge joining it to the lower
-  vertex is itself steeper than the threshold: ``z_v - z_l > tan(threshold) * |p_v - p_l|``. So in
-  a triangle with two ground points and one roof point only the roof point moves, and a thin sliver
-  whose plane is steep although none of its edges is (possible on the hull) adjusts nothing.
+* **Lower and higher vertices.** The *lower* vertex is the lowest of the three (ties: the one
+  first in the spatial order below). A vertex is *higher* (an object candidate) when the edge
+  joining it to the lower vertex is itself steeper than the threshold:
+  ``z_v - z_l > tan(threshold) * |p_v - p_l|``. So in a triangle with two ground points and one
+  roof point only the roof point moves, and a thin sliver whose plane is steep although none of
+  its edges is (possible on the hull) adjusts nothing.
 * **Interpolation.** The local slope ``g`` is the mean plane gradient of the edge triangle's
   (up to three) edge-adjacent neighbours that are not step-edge triangles (``g = 0`` when there is
   none). The candidate's proposal is ``z_l + g . (p_v - p_l)``, the terrain extended from the lower
@@ -44,14 +45,45 @@ The abstract leaves several things open; this implementation decides them as fol
 * **Small adjustments.** A point lowered by less than ``min_object_height`` metres was a
   terrain point on a rough or steep slope, not an object: ground in the end.
 * **Terraces.** The iteration cannot tell a building from an upper terrace or an embankment top:
-  both begin at a step and are peeled ring by ring. Refinement (a well-known morphological one,
-  as in SMRF): the lowest point per cell of about one point spacing is rasterised and opened with
-  a square window of ``max_object_size`` metres, which removes objects narrower than the window
-  but keeps wider raised ground. An adjusted point within ``min_object_height + 1.2 * grade`` of
-  that opened surface (grade = its local tan(slope)) is terrain.
+  both begin at a step and are peeled ring by ring. Refinement (a well-known morphological one, the
+  progressive morphological filter of Zhang et al. 2003 as SMRF (Pingel et al. 2013) uses it): the
+  lowest point per cell of about one point spacing is rasterised (empty cells filled, see below)
+  and opened with square windows of growing radius r = 1, 2, ... cells up to half of
+  ``max_object_size``; a cell is an *object cell* when one opening lowers it by more than
+  ``terrain_slope * r * cell`` below the previous opening. Raised ground rises gently, so each
+  wider window lowers it by little; a building is cut away at once by the first window wider than
+  it. An adjusted point in a cell that is not an object cell and within ``min_object_height`` of
+  the cell's lowest point is terrain. This implementation decides: square windows (separable,
+  so the cost does not grow with the window), and at most 16 openings (larger radii are stepped
+  evenly, for dense clouds whose cells are small).
+* **Final classification against the ground surface.** Where the abstract stops (adjusted points
+  are objects, the others terrain), this implementation adds the last step of SMRF and of most
+  surface-based filters: a ground surface is interpolated from the terrain points of steps 4-7
+  and every point is classified against it. The surface is the lowest terrain point per cell
+  (cells of one point spacing), the other cells filled by pull-push interpolation (below), sampled
+  bilinearly at every point. A point is ground when it lies less than
+  ``ground_tolerance + 1.0 * grade`` above the surface (grade = the surface's local tan(slope),
+  since the lowest point of a cell on a slope lies below the others), and not a low outlier;
+  points below the surface are ground. This catches low objects and vegetation whose steps are
+  below ``min_object_height`` or not steep enough, and gives back terrain points that the
+  iteration peeled next to steps. ``ground_tolerance = 0`` turns the step off (then the result
+  is that of steps 4-7). With the step on, ``adjusted_z`` of an object point is the surface
+  under it.
+* **Raster fill (pull-push).** Empty cells take the weighted mean of the coarser pyramid level
+  (2 x 2 blocks, weights the number of filled cells, capped at 1), recursively: smooth across
+  large holes such as building footprints, exact where cells are filled.
 * **Duplicate XY points.** Only the lowest point of each XY position enters the TIN. The others
   are ground when their representative is ground and they lie within ``min_object_height`` of its
   adjusted elevation; otherwise object.
+* **Defaults.** With the refinements above the iteration is best at a lower threshold than the
+  45 degrees used on its own: ``slope_threshold = 35`` and ``min_object_height = 0.5`` m, one set
+  for all seven ISPRS samples (mean total error 4.54 %; 4.86 % at 45 degrees, 5.06 % at 45 degrees
+  and 1 m). Step 8 builds its surface from the iteration's terrain points, so the iteration's
+  answer still decides which cells carry the surface.
+* **Spatial order.** The points are first sorted (stably) by their cell of the low-outlier grid
+  and the results put back in the caller's order at the end: Triangle triangulates spatially
+  sorted points about 30 % faster and the iteration's lookups stay in the cache (startin sorts
+  its input along a Morton curve itself).
 * **Multiple returns.** All points given are used as they are; a caller that wants last returns
   only selects them before the call.
 
@@ -70,13 +102,14 @@ from typing import Any
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import distance_transform_edt, grey_opening
 
-from algorithms.tin import delaunay
+from algorithms.tin import delaunay, vertex_triangles
 from worker.errors import ParameterError
 
-#: Tolerance growth with the terrain grade in step 6 (metres per unit of tan(slope)), as SMRF's.
-SLOPE_TOLERANCE = 1.2
+#: Tolerance growth with the ground surface's grade in step 8 (metres per unit of tan(slope)).
+SURFACE_SLOPE_TOLERANCE = 1.0
+#: Openings at most in the progressive terrace check (step 6); larger radii are stepped evenly.
+MAX_OPENINGS = 16
 #: Quantile of the neighbours' z that a low outlier is compared with (step 3).
 LOW_QUANTILE = 0.25
 
@@ -106,19 +139,22 @@ class GroundResult:
 def classify_ground(
     xyz: np.ndarray,
     *,
-    slope_threshold: float = 45.0,
+    slope_threshold: float = 35.0,
     max_iterations: int = 1000,
-    min_object_height: float = 1.0,
+    min_object_height: float = 0.5,
     low_outlier_depth: float = 2.0,
     max_object_size: float = 25.0,
+    terrain_slope: float = 0.2,
+    ground_tolerance: float = 0.5,
 ) -> GroundResult:
     """Separate terrain from object points by iterative elimination of TIN step edges.
 
     Steps: (1) centre; (2) one Delaunay TIN in XY of the lowest point per XY position;
     (3) low outliers raised; (4) step-edge iteration (slope, lower/higher vertices, adjustment by
-    the local slope, re-slope, repeat); (5) small adjustments are terrain; (6) adjusted points
-    within the slope-aware tolerance of the opened lowest-point surface are terrain (terraces);
-    (7) duplicate XY points take their representative's label.
+    the local slope, re-slope, repeat); (5) small adjustments are terrain; (6) adjusted points in
+    cells that the progressive opening keeps as ground are terrain (terraces); (7) duplicate XY
+    points take their representative's label; (8) every point is classified against the ground
+    surface interpolated from the terrain points.
 
     Parameters
     ----------
@@ -134,15 +170,22 @@ def classify_ground(
         Metres (> 0): a point this far below the lower quartile of its ~24 neighbours is a low
         outlier.
     max_object_size : float
-        Metres (>= 0, 0 disables step 6): width of the opening window; raised ground wider than
-        this is terrain, objects wider than this can be missed.
+        Metres (>= 0, 0 disables step 6): width of the largest opening window; raised ground
+        wider than this is terrain, objects wider than this can be missed.
+    terrain_slope : float
+        tan of a slope (>= 0): the progressive opening flags a cell as object when a window of
+        radius r lowers it by more than ``terrain_slope * r`` metres per metre of cell.
+    ground_tolerance : float
+        Metres (>= 0, 0 disables step 8): a point less than this (plus 1.0 x the local grade)
+        above the ground surface is ground.
 
     Returns
     -------
     GroundResult
     """
     xyz = _check_input(
-        xyz, slope_threshold, max_iterations, min_object_height, low_outlier_depth, max_object_size
+        xyz, slope_threshold, max_iterations, min_object_height, low_outlier_depth,
+        max_object_size, terrain_slope, ground_tolerance,
     )
     n = xyz.shape[0]
     params = {
@@ -151,11 +194,15 @@ def classify_ground(
         "min_object_height": float(min_object_height),
         "low_outlier_depth": float(low_outlier_depth),
         "max_object_size": float(max_object_size),
+        "terrain_slope": float(terrain_slope),
+        "ground_tolerance": float(ground_tolerance),
     }
     if n < 3:
         return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
 
     xy, z = centre(xyz)  # step 1
+    perm = spatial_order(xy)  # work in a cache-friendly order; results go back at the end
+    xy, z = np.ascontiguousarray(xy[perm]), z[perm]
     rep, unique_idx = lowest_per_xy(xy, z)  # step 2
     tri, nbr, name = triangulate(xy[unique_idx])
     if tri.shape[0] == 0:  # all points collinear in XY: nothing to triangulate, nothing to filter
@@ -174,15 +221,25 @@ def classify_ground(
     )
     adjusted &= ~low
     small = adjusted & (z - z_adj < min_object_height)  # step 5
-    terrace = np.zeros(n, bool)
+    geo = RasterGeometry.fit(xy)
+    lowest = fill_pull_push(*lowest_per_cell(geo, z_raised))
     if max_object_size > 0:  # step 6
-        opened, grade = opened_minimum_surface(xy, z_raised, max_object_size)
-        terrace = adjusted & ~small & (z - opened < min_object_height + SLOPE_TOLERANCE * grade)
+        object_cells = progressive_object_cells(lowest, geo.cell, max_object_size, terrain_slope)
+        cell_low = lowest.reshape(-1)[geo.flat]
+        on_ground = ~object_cells.reshape(-1)[geo.flat]
+        terrace = adjusted & ~small & on_ground & (z_raised - cell_low < min_object_height)
+    else:
+        terrace = np.zeros(n, bool)
     is_ground = ~low & (~adjusted | small | terrace)
     z_adj[is_ground] = z[is_ground]
     is_ground, z_adj = _resolve_duplicates(  # step 7
         z, z_adj, rep, unique_idx, is_ground, min_object_height
     )
+    preliminary = int(np.count_nonzero(is_ground))
+    if ground_tolerance > 0 and is_ground.any():  # step 8
+        surface, grade = ground_surface(geo, xy, z, is_ground)
+        is_ground = ~low & (z - surface < ground_tolerance + SURFACE_SLOPE_TOLERANCE * grade)
+        z_adj = np.where(is_ground, z, surface)
 
     info = {
         **params,
@@ -198,9 +255,12 @@ def classify_ground(
         "converged": bool(not pending.any()),
         "small_adjustments": int(np.count_nonzero(small)),
         "terrace_points": int(np.count_nonzero(terrace)),
+        "preliminary_ground_points": preliminary,
         "ground_points": int(np.count_nonzero(is_ground)),
     }
-    return GroundResult(is_ground, z_adj + _z_offset(xyz), info)
+    out_ground, out_z = np.empty(n, bool), np.empty(n)
+    out_ground[perm], out_z[perm] = is_ground, z_adj
+    return GroundResult(out_ground, out_z + _z_offset(xyz), info)
 
 
 def _z_offset(xyz: np.ndarray) -> float:
@@ -222,6 +282,7 @@ def _empty_info(params: dict[str, Any], n: int) -> dict[str, Any]:
         "converged": True,
         "small_adjustments": 0,
         "terrace_points": 0,
+        "preliminary_ground_points": int(n),
         "ground_points": int(n),
     }
 
@@ -233,6 +294,8 @@ def _check_input(
     min_object_height: float,
     low_outlier_depth: float,
     max_object_size: float,
+    terrain_slope: float,
+    ground_tolerance: float,
 ) -> np.ndarray:
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -249,6 +312,10 @@ def _check_input(
         raise ParameterError(f"low_outlier_depth must be > 0 metres, got {low_outlier_depth!r}")
     if not max_object_size >= 0.0:
         raise ParameterError(f"max_object_size must be >= 0 metres, got {max_object_size!r}")
+    if not terrain_slope >= 0.0:
+        raise ParameterError(f"terrain_slope must be >= 0, got {terrain_slope!r}")
+    if not ground_tolerance >= 0.0:
+        raise ParameterError(f"ground_tolerance must be >= 0 metres, got {ground_tolerance!r}")
     return xyz
 
 
@@ -261,6 +328,26 @@ def centre(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xy = xyz[:, :2] - 0.5 * (lo + hi)
     z = xyz[:, 2] - _z_offset(xyz)
     return np.ascontiguousarray(xy), np.ascontiguousarray(z)
+
+
+def spatial_order(xy: np.ndarray) -> np.ndarray:
+    """A permutation that sorts the points by their cell of the low-outlier grid (row-major).
+
+    Stable, so points with the same XY keep their order. Points near in space are then near in
+    memory: Triangle triangulates about 30 % faster and the iteration's lookups hit the cache.
+    """
+    return np.argsort(_low_grid(xy)[0], kind="stable")
+
+
+def _low_grid(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row-major cell index of each point in the grid of 1.6 mean point spacings, and its shape."""
+    n = xy.shape[0]
+    lo = xy.min(axis=0)
+    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
+    cell = max(1.6 * math.sqrt(ext[0] * ext[1] / n), 1e-6)
+    shape = (ext / cell).astype(np.int64) + 1
+    ij = ((xy - lo) / cell).astype(np.int64)
+    return ij[:, 0] * shape[1] + ij[:, 1], shape
 
 
 def lowest_per_xy(xy: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -347,25 +434,6 @@ def triangle_slopes(xy: np.ndarray, z: np.ndarray, tri: np.ndarray) -> np.ndarra
     gx = inv[:, 0] * d1 + inv[:, 1] * d2
     gy = inv[:, 2] * d1 + inv[:, 3] * d2
     return np.where(valid, np.degrees(np.arctan(np.hypot(gx, gy))), 0.0)
-
-
-@njit(cache=True)
-def _vertex_triangles(tri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR map vertex -> incident triangles: ``idx[ptr[v]:ptr[v + 1]]``."""
-    ptr = np.zeros(n + 1, np.int64)
-    for t in range(tri.shape[0]):
-        for k in range(3):
-            ptr[tri[t, k] + 1] += 1
-    for v in range(n):
-        ptr[v + 1] += ptr[v]
-    fill = ptr[:-1].copy()
-    idx = np.empty(ptr[n], np.int64)
-    for t in range(tri.shape[0]):
-        for k in range(3):
-            v = tri[t, k]
-            idx[fill[v]] = t
-            fill[v] += 1
-    return ptr, idx
 
 
 @njit(cache=True)
@@ -457,7 +525,7 @@ def iterate_step_edges(
     """
     n = z.shape[0]
     m = tri.shape[0]
-    ptr, vt = _vertex_triangles(tri, n)
+    ptr, vt = vertex_triangles(tri, n)
     grad = np.zeros((m, 2))
     is_edge = np.zeros(m, np.bool_)
     tan2 = tan_thr * tan_thr
@@ -585,13 +653,7 @@ def _low_reference(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
     Cells are 1.6 mean point spacings wide, so a block holds about 24 points: a cheap
     stand-in for the k nearest neighbours (a k-d tree query costs more than the whole TIN).
     """
-    n = z.shape[0]
-    lo = xy.min(axis=0)
-    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
-    cell = max(1.6 * math.sqrt(ext[0] * ext[1] / n), 1e-6)
-    shape = (ext / cell).astype(np.int64) + 1
-    ij = ((xy - lo) / cell).astype(np.int64)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    flat, shape = _low_grid(xy)
     order = np.argsort(flat, kind="stable")
     ptr = np.searchsorted(flat[order], np.arange(shape[0] * shape[1] + 1))
     ref_cell = _block_quartiles(z[order], ptr, int(shape[0]), int(shape[1]), LOW_QUANTILE)
@@ -620,9 +682,33 @@ def _block_quartiles(
                     for p in range(ptr[cc], ptr[cc + 1]):
                         buf[m] = z_sorted[p]
                         m += 1
-            vals = np.sort(buf[:m])
-            out[c] = vals[int(q * (m - 1))]
+            out[c] = _select(buf, m, int(q * (m - 1)))
     return out
+
+
+@njit(cache=True)
+def _select(buf: np.ndarray, m: int, k: int) -> float:
+    """The k-th smallest of ``buf[:m]`` (0-based) by quickselect, reordering ``buf[:m]``."""
+    lo, hi = 0, m - 1
+    while lo < hi:
+        pivot = buf[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while buf[i] < pivot:
+                i += 1
+            while buf[j] > pivot:
+                j -= 1
+            if i <= j:
+                buf[i], buf[j] = buf[j], buf[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return buf[k]
 
 
 def find_low_outliers(
@@ -640,34 +726,195 @@ def find_low_outliers(
     return z < ref - depth, ref
 
 
-def opened_minimum_surface(
-    xy: np.ndarray, z: np.ndarray, window: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Morphological opening of the lowest-point raster and its grade, sampled at the points.
+@dataclass
+class RasterGeometry:
+    """A grid of square cells over the points' XY extent and each point's cell.
 
-    Cells of about one point spacing hold the lowest z that falls in them (empty cells take their
-    nearest filled cell); a grey opening with a square of ``window`` metres removes everything
-    narrower than the window (objects) but keeps wider raised ground (terraces, embankment tops).
-    Returns the opened surface (n,) and its grade |grad z| (n,) by differences on the raster.
+    Attributes: ``lo`` (2,) the grid's lower-left corner, ``cell`` the cell size in metres,
+    ``shape`` (nx, ny) and ``flat`` (n,) the row-major cell index of each point.
     """
-    n = z.shape[0]
-    lo = xy.min(axis=0)
-    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
-    cell = max(float(np.sqrt(ext[0] * ext[1] / n)), 1e-3)
-    shape = (ext / cell).astype(np.int64) + 1
-    ij = ((xy - lo) / cell).astype(np.int64)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
-    grid = np.full(shape[0] * shape[1], np.inf)
-    np.minimum.at(grid, flat, z)
-    grid = grid.reshape(shape)
-    empty = ~np.isfinite(grid)
-    if empty.any():
-        _, (ii, jj) = distance_transform_edt(empty, return_indices=True)
-        grid = grid[ii, jj]
-    w = max(int(round(window / cell)) | 1, 1)
-    opened = grey_opening(grid, size=(w, w))
+
+    lo: np.ndarray
+    cell: float
+    shape: tuple[int, int]
+    flat: np.ndarray
+
+    @classmethod
+    def fit(cls, xy: np.ndarray, spacings: float = 1.0) -> RasterGeometry:
+        """Cells ``spacings`` mean point spacings wide (mean spacing = sqrt(area / n))."""
+        n = xy.shape[0]
+        lo = xy.min(axis=0)
+        ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
+        cell = max(spacings * float(np.sqrt(ext[0] * ext[1] / n)), 1e-3)
+        shape = (ext / cell).astype(np.int64) + 1
+        ij = ((xy - lo) / cell).astype(np.int64)
+        return cls(lo, cell, (int(shape[0]), int(shape[1])), ij[:, 0] * shape[1] + ij[:, 1])
+
+
+def lowest_per_cell(
+    geo: RasterGeometry, z: np.ndarray, mask: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest z per cell (of the points in ``mask``, default all): grid and filled-cell mask."""
+    flat, vals = (geo.flat, z) if mask is None else (geo.flat[mask], z[mask])
+    grid = np.full(geo.shape[0] * geo.shape[1], np.inf)
+    np.minimum.at(grid, flat, vals)
+    grid = grid.reshape(geo.shape)
+    return grid, np.isfinite(grid)
+
+
+def fill_pull_push(grid: np.ndarray, filled: np.ndarray) -> np.ndarray:
+    """Fill the cells where ``filled`` is False by pull-push interpolation; others are kept.
+
+    Pull: each coarser level holds per 2 x 2 block the mean of its filled cells and a weight, the
+    number of filled cells capped at 1. Push: from the coarsest level down, a cell becomes
+    ``w * own + (1 - w) * parent``. An all-empty grid gives zeros.
+    """
+    if filled.all():
+        return grid
+    levels = [(np.where(filled, grid, 0.0), filled.astype(np.float64))]
+    while max(levels[-1][0].shape) > 1:
+        levels.append(_pull(*levels[-1]))
+    val = levels[-1][0]
+    for own, wt in reversed(levels[:-1]):
+        val = _push(own, wt, val)
+    return np.where(filled, grid, val)
+
+
+@njit(cache=True)
+def _pull(val: np.ndarray, wt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One coarser pyramid level: weighted block means over 2 x 2 cells, weights capped at 1."""
+    nx, ny = val.shape
+    cx, cy = (nx + 1) // 2, (ny + 1) // 2
+    sv = np.zeros((cx, cy))
+    sw = np.zeros((cx, cy))
+    for i in range(nx):
+        for j in range(ny):
+            w = wt[i, j]
+            if w > 0.0:
+                sv[i // 2, j // 2] += val[i, j] * w
+                sw[i // 2, j // 2] += w
+    for i in range(cx):
+        for j in range(cy):
+            if sw[i, j] > 0.0:
+                sv[i, j] /= sw[i, j]
+                sw[i, j] = min(sw[i, j], 1.0)
+    return sv, sw
+
+
+@njit(cache=True)
+def _push(own: np.ndarray, wt: np.ndarray, parent: np.ndarray) -> np.ndarray:
+    """A level from its own values and the filled coarser one: ``w * own + (1 - w) * parent``."""
+    nx, ny = own.shape
+    out = np.empty((nx, ny))
+    for i in range(nx):
+        for j in range(ny):
+            w = wt[i, j]
+            out[i, j] = w * own[i, j] + (1.0 - w) * parent[i // 2, j // 2]
+    return out
+
+
+def opening_radii(window: float, cell: float, most: int = MAX_OPENINGS) -> np.ndarray:
+    """Window radii in cells, 1 up to half of ``window``: every one, or ``most`` evenly stepped."""
+    top = max(int(round(window / (2.0 * cell))), 1)
+    if top <= most:
+        return np.arange(1, top + 1)
+    return np.unique(np.round(np.linspace(1, top, most)).astype(np.int64))
+
+
+@njit(cache=True)
+def _filter_rows(a: np.ndarray, r: int, take_max: bool) -> np.ndarray:
+    """Running min (or max) over ``2 r + 1`` cells along each row, edges extended (van Herk /
+    Gil-Werman: two block-wise prefix scans, about three comparisons per cell for any window)."""
+    nx, ny = a.shape
+    w = 2 * r + 1
+    length = ny + 2 * r
+    padded = -(-length // w) * w
+    out = np.empty_like(a)
+    p = np.empty(padded, a.dtype)
+    g = np.empty(padded, a.dtype)
+    h = np.empty(padded, a.dtype)
+    for i in range(nx):
+        for j in range(padded):
+            src = min(max(j - r, 0), ny - 1)
+            p[j] = a[i, src]
+        for b in range(0, padded, w):
+            g[b] = p[b]
+            for j in range(b + 1, b + w):
+                g[j] = max(g[j - 1], p[j]) if take_max else min(g[j - 1], p[j])
+            h[b + w - 1] = p[b + w - 1]
+            for j in range(b + w - 2, b - 1, -1):
+                h[j] = max(h[j + 1], p[j]) if take_max else min(h[j + 1], p[j])
+        for j in range(ny):
+            out[i, j] = max(h[j], g[j + w - 1]) if take_max else min(h[j], g[j + w - 1])
+    return out
+
+
+def square_opening(grid: np.ndarray, r: int) -> np.ndarray:
+    """Grey opening with a (2r+1) x (2r+1) square, edges extended (scipy's ``mode="nearest"``)."""
+    eroded = _filter_rows(np.ascontiguousarray(_filter_rows(grid, r, False).T), r, False)
+    return _filter_rows(np.ascontiguousarray(_filter_rows(eroded, r, True).T), r, True)
+
+
+def progressive_object_cells(
+    grid: np.ndarray, cell: float, window: float, slope: float
+) -> np.ndarray:
+    """Progressive morphological filter (Zhang et al. 2003; SMRF, Pingel et al. 2013) on a raster.
+
+    Opens ``grid`` with squares of radius r (:func:`opening_radii`); a cell whose opening at
+    radius r lies more than ``slope * r * cell`` below the opening at the previous radius (the grid
+    itself before the first) is an object cell. Returns the (nx, ny) bool mask. Works in float32
+    (half the memory traffic; elevations are centred, so a float32 step is below 0.1 mm).
+    """
+    grid = np.ascontiguousarray(grid, dtype=np.float32)
+    obj = np.zeros(grid.shape, bool)
+    prev = grid
+    for r in opening_radii(window, cell):
+        opened = square_opening(grid, int(r))
+        obj |= prev - opened > np.float32(slope * r * cell)
+        prev = opened
+    return obj
+
+
+def ground_surface(
+    geo: RasterGeometry, xy: np.ndarray, z: np.ndarray, is_ground: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ground surface under every point and its grade (step 8), both (n,).
+
+    Lowest ground point per cell, the other cells filled by pull-push, sampled bilinearly between
+    cell centres; grade = |grad| of the filled raster by differences.
+    """
+    grid, filled = lowest_per_cell(geo, z, is_ground)
+    surface = fill_pull_push(grid, filled)
     # a raster one cell thin (a narrow strip of points) has no slope across it
-    gx = np.gradient(opened, cell, axis=0) if shape[0] > 1 else np.zeros_like(opened)
-    gy = np.gradient(opened, cell, axis=1) if shape[1] > 1 else np.zeros_like(opened)
-    grade = np.hypot(gx, gy)
-    return opened.reshape(-1)[flat], grade.reshape(-1)[flat]
+    gx = np.gradient(surface, geo.cell, axis=0) if geo.shape[0] > 1 else np.zeros(geo.shape)
+    gy = np.gradient(surface, geo.cell, axis=1) if geo.shape[1] > 1 else np.zeros(geo.shape)
+    return bilinear(surface, np.hypot(gx, gy), (xy - geo.lo) / geo.cell - 0.5)
+
+
+@njit(cache=True)
+def bilinear(
+    a: np.ndarray, b: np.ndarray, ij: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Two rasters sampled bilinearly at fractional cell coordinates ``ij`` (n, 2), where cell
+    (i, j) has its value at (i, j); outside the raster the nearest edge value is taken (as
+    ``scipy.ndimage.map_coordinates(order=1, mode="nearest")``)."""
+    nx, ny = a.shape
+    n = ij.shape[0]
+    out_a = np.empty(n)
+    out_b = np.empty(n)
+    for k in range(n):
+        fi = min(max(ij[k, 0], 0.0), nx - 1.0)
+        fj = min(max(ij[k, 1], 0.0), ny - 1.0)
+        i0 = min(int(fi), max(nx - 2, 0))
+        j0 = min(int(fj), max(ny - 2, 0))
+        i1 = min(i0 + 1, nx - 1)
+        j1 = min(j0 + 1, ny - 1)
+        ti = fi - i0
+        tj = fj - j0
+        w00 = (1.0 - ti) * (1.0 - tj)
+        w01 = (1.0 - ti) * tj
+        w10 = ti * (1.0 - tj)
+        w11 = ti * tj
+        out_a[k] = w00 * a[i0, j0] + w01 * a[i0, j1] + w10 * a[i1, j0] + w11 * a[i1, j1]
+        out_b[k] = w00 * b[i0, j0] + w01 * b[i0, j1] + w10 * b[i1, j0] + w11 * b[i1, j1]
+    return out_a, out_b

@@ -91,6 +91,25 @@ def _spread_bits(v: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def vertex_triangles(tri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR map vertex -> incident triangles: ``idx[ptr[v]:ptr[v + 1]]`` for the n vertices."""
+    ptr = np.zeros(n + 1, np.int64)
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            ptr[tri[t, k] + 1] += 1
+    for v in range(n):
+        ptr[v + 1] += ptr[v]
+    fill = ptr[:-1].copy()
+    idx = np.empty(ptr[n], np.int64)
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            v = tri[t, k]
+            idx[fill[v]] = t
+            fill[v] += 1
+    return ptr, idx
+
+
+@njit(cache=True)
 def edge_neighbours(tri: np.ndarray, n: int) -> np.ndarray:
     """nbr[t, k]: the other triangle on the edge of t opposite its vertex k, -1 if none.
 
@@ -98,19 +117,7 @@ def edge_neighbours(tri: np.ndarray, n: int) -> np.ndarray:
     incident to a that also has b.
     """
     m = tri.shape[0]
-    ptr = np.zeros(n + 1, np.int64)
-    for t in range(m):
-        for k in range(3):
-            ptr[tri[t, k] + 1] += 1
-    for v in range(n):
-        ptr[v + 1] += ptr[v]
-    fill = ptr[:-1].copy()
-    incident = np.empty(ptr[n], np.int64)
-    for t in range(m):
-        for k in range(3):
-            v = tri[t, k]
-            incident[fill[v]] = t
-            fill[v] += 1
+    ptr, incident = vertex_triangles(tri, n)
     nbr = np.full((m, 3), -1, np.int64)
     for t in range(m):
         for k in range(3):

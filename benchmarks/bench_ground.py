@@ -84,7 +84,7 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=1_100_000)
     ap.add_argument("--dense", action="store_true", help="speed: ~110 points/m2 instead of ~1")
     names = ["slope_threshold", "max_iterations", "min_object_height", "low_outlier_depth",
-             "max_object_size"]
+             "max_object_size", "terrain_slope", "ground_tolerance"]
     for name in names:
         kind = int if name == "max_iterations" else float
         ap.add_argument("--" + name.replace("_", "-"), type=kind)

@@ -83,7 +83,7 @@ class GroundParams(_Stage):
 
     detector: Literal["ground"] = "ground"
     slope_threshold: float = Field(
-        45.0, gt=0.0, lt=90.0,
+        35.0, gt=0.0, lt=90.0,
         description="Triangle slope in degrees above which it is a step edge.",
     )
     max_iterations: int = Field(
@@ -91,7 +91,7 @@ class GroundParams(_Stage):
         description="Adjust-and-retest rounds at most (one round peels one ring off an object).",
     )
     min_object_height: float = Field(
-        1.0, ge=0.0, le=100.0,
+        0.5, ge=0.0, le=100.0,
         description="Metres: least rise of a step edge; points lowered by less are ground.",
     )
     low_outlier_depth: float = Field(
@@ -101,8 +101,18 @@ class GroundParams(_Stage):
     )
     max_object_size: float = Field(
         25.0, ge=0.0, le=1000.0,
-        description="Metres: raised ground wider than this is terrain (morphological opening of "
-        "the lowest-point raster); 0 turns the terrace check off.",
+        description="Metres: largest window of the progressive opening of the lowest-point "
+        "raster; raised ground wider than this is terrain; 0 turns the terrace check off.",
+    )
+    terrain_slope: float = Field(
+        0.2, ge=0.0, le=10.0,
+        description="tan of the steepest terrain slope: the progressive opening calls a cell "
+        "object when a window of radius r lowers it by more than terrain_slope x r.",
+    )
+    ground_tolerance: float = Field(
+        0.5, ge=0.0, le=100.0,
+        description="Metres: final step, a point less than this (+ 1.0 x local grade) above the "
+        "surface interpolated from the ground points is ground; 0 turns the step off.",
     )
 
 
