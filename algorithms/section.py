@@ -10,7 +10,7 @@ Scores: a removed point keeps the T_i of the fit that removed it; a kept point g
 last fit. A section that has fewer than the points needed for eq. 31 to flag anything at ``alpha``
 (see :func:`algorithms.quadric.min_patch_size`; never fewer than 10), or whose fit does not
 converge, leaves its remaining points untested (NaN); points removed before stay flagged.
-Sections run in parallel (numba, one section per task, largest first).
+Sections run in parallel (numba; the sections are shared among the threads by size).
 """
 
 from __future__ import annotations
@@ -96,7 +96,8 @@ def _one_section(
 def _all_sections(
     xyz: np.ndarray,
     offsets: np.ndarray,
-    sequence: np.ndarray,
+    bucket_offsets: np.ndarray,
+    bucket_sections: np.ndarray,
     var: np.ndarray,
     crit_table: np.ndarray,
     min_points: int,
@@ -110,14 +111,37 @@ def _all_sections(
     iterations: np.ndarray,
 ) -> None:
     """Run :func:`_one_section` on xyz[offsets[j]:offsets[j+1]] for every section j in parallel,
-    taking the sections in the order of ``sequence`` (largest first, see :func:`detect_section`)."""
-    for s in prange(sequence.shape[0]):
-        j = sequence[s]
-        lo, hi = offsets[j], offsets[j + 1]
-        outcome[j], fits[j], iterations[j] = _one_section(
-            xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol,
-            score[lo:hi], flagged[lo:hi],
-        )  # fmt: skip
+    one thread per bucket: bucket b holds the sections bucket_sections[bucket_offsets[b]:
+    bucket_offsets[b + 1]] (see :func:`balanced_buckets`)."""
+    for b in prange(bucket_offsets.shape[0] - 1):
+        for s in range(bucket_offsets[b], bucket_offsets[b + 1]):
+            j = bucket_sections[s]
+            lo, hi = offsets[j], offsets[j + 1]
+            outcome[j], fits[j], iterations[j] = _one_section(
+                xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol,
+                score[lo:hi], flagged[lo:hi],
+            )  # fmt: skip
+
+
+def balanced_buckets(sizes: np.ndarray, n_buckets: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sections shared among ``n_buckets`` threads with about equal points each (greedy, largest
+    section first to the least loaded bucket).
+
+    numba's prange splits its range into equal contiguous parts, and section costs differ by
+    orders of magnitude (a mobile strip is a few sections wide), so one part per thread is made
+    here. Returns (offsets (n_buckets + 1,), sections): bucket b is sections[offsets[b]:
+    offsets[b + 1]]. The result never depends on it: every section is fitted on its own.
+    """
+    n_buckets = max(1, min(int(n_buckets), sizes.size))
+    load = np.zeros(n_buckets, dtype=np.int64)
+    owner = np.empty(sizes.size, dtype=np.int64)
+    for j in np.argsort(-sizes, kind="stable"):
+        b = int(np.argmin(load))
+        owner[j] = b
+        load[b] += sizes[j]
+    sections = np.argsort(owner, kind="stable")
+    offsets = np.searchsorted(owner[sections], np.arange(n_buckets + 1))
+    return offsets.astype(np.int64), sections.astype(np.int64)
 
 
 def detect_section(
@@ -179,16 +203,12 @@ def detect_section(
     fits = np.zeros(m, dtype=np.int64)
     iterations = np.zeros(m, dtype=np.int64)
     if m:
-        # Section costs differ by orders of magnitude (a mobile strip is a few sections wide):
-        # threads take one section at a time, largest first, so one thread is not left with
-        # several big ones while the other idles.
-        largest_first = np.argsort(-sizes, kind="stable")
-        with numba.parallel_chunksize(1):
-            _all_sections(
-                xyz_sorted, offsets, largest_first, var, crit_table, min_points,
-                int(max_iterations), FIT_MAX_ITER, FIT_TOL, score_sorted, flagged_sorted, outcome,
-                fits, iterations,
-            )  # fmt: skip
+        bucket_offsets, bucket_sections = balanced_buckets(sizes, numba.get_num_threads())
+        _all_sections(
+            xyz_sorted, offsets, bucket_offsets, bucket_sections, var, crit_table, min_points,
+            int(max_iterations), FIT_MAX_ITER, FIT_TOL, score_sorted, flagged_sorted, outcome,
+            fits, iterations,
+        )  # fmt: skip
     score = np.empty(n)
     score[order] = score_sorted
     flagged = np.empty(n, dtype=bool)

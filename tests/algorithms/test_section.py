@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from algorithms.section import detect_section
+from algorithms.section import balanced_buckets, detect_section
 from tests.algorithms.test_quadric import slow_fit
 from worker.errors import ParameterError
 
@@ -156,3 +156,16 @@ def test_bad_parameters_are_refused(kwargs, word):
 def test_empty_cloud():
     res = detect_section(np.zeros((0, 3)))
     assert res.score.shape == (0,) and res.flagged.shape == (0,)
+
+
+def test_balanced_buckets_share_every_section_once_by_size():
+    sizes = np.array([313, 226, 216, 117, 112, 107, 2, 1])
+    offsets, sections = balanced_buckets(sizes, 2)
+    assert sorted(sections.tolist()) == list(range(8))
+    loads = [int(sizes[sections[offsets[b]:offsets[b + 1]]].sum()) for b in range(2)]
+    assert abs(loads[0] - loads[1]) <= sizes.max() and sum(loads) == sizes.sum()
+    assert loads == [545, 549]  # greedy: {313, 117, 112, 2, 1} and {226, 216, 107}
+    one = balanced_buckets(sizes, 1)
+    assert one[0].tolist() == [0, 8]
+    many = balanced_buckets(sizes[:3], 8)  # more threads than sections: one bucket per section
+    assert many[0].tolist() == [0, 1, 2, 3]
