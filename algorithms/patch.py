@@ -117,7 +117,8 @@ def detect_patch(
     for batch in spatial_batches(local[:, :2], batch_points, tile_size):
         _, nbr = tree.query(local[batch], k=k, workers=-1)
         fit = fit_quadrics(
-            local[nbr], var_sigma, max_iter=FIT_MAX_ITER, tol=FIT_TOL, t_first_only=True
+            local, var_sigma, neighbours=nbr, max_iter=FIT_MAX_ITER, tol=FIT_TOL,
+            t_first_only=True,
         )
         score[batch] = np.where(fit.converged, fit.t_stat[:, 0], np.nan)
         not_converged += int((~fit.converged).sum())

@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -680,7 +681,9 @@ def _centre(xyz: np.ndarray, active: np.ndarray, out: np.ndarray, centroid: np.n
 
 @njit(cache=True, parallel=True)
 def _fit_patches(
-    patches: np.ndarray,
+    points: np.ndarray,
+    index: np.ndarray,
+    order: np.ndarray,
     var: np.ndarray,
     max_iter: int,
     tol: float,
@@ -694,17 +697,30 @@ def _fit_patches(
     iterations: np.ndarray,
     converged: np.ndarray,
 ) -> None:
-    m, k, _ = patches.shape
-    for j in prange(m):
+    """Patch j is points[index[j]], taken in the order ``order``: prange gives each thread one
+    contiguous part of it, and an interleaved order (:func:`interleaved_order`) spreads the
+    patches that converge slowly, which lie together in space, over all threads."""
+    m, k = index.shape
+    for s in prange(m):
+        j = order[s]
         active = np.ones(k, dtype=np.bool_)
+        patch = np.empty((k, 3))
+        for i in range(k):
+            patch[i] = points[index[j, i]]
         local = np.empty((k, 3))
-        _centre(patches[j], active, local, centroid[j])
+        _centre(patch, active, local, centroid[j])
         s0, it, ok = _fit_one(
             local, active, var, max_iter, tol, t_first_only, accelerate, params[j], v[j], t[j]
         )
         sigma0[j] = s0
         iterations[j] = it
         converged[j] = ok
+
+
+def interleaved_order(m: int, parts: int) -> np.ndarray:
+    """range(m) as every parts-th item: 0, p, 2p, ..., then 1, p + 1, ... (a permutation)."""
+    parts = max(1, int(parts))
+    return np.concatenate([np.arange(r, m, parts) for r in range(parts)]).astype(np.int64)
 
 
 def _variances(sigma: float | np.ndarray) -> np.ndarray:
@@ -719,6 +735,7 @@ def fit_quadrics(
     patches: np.ndarray,
     sigma: float | np.ndarray = 0.005,
     *,
+    neighbours: np.ndarray | None = None,
     max_iter: int = 50,
     tol: float = 1e-10,
     t_first_only: bool = False,
@@ -728,10 +745,13 @@ def fit_quadrics(
 
     Parameters
     ----------
-    patches : (m, k, 3) float
+    patches : (m, k, 3) float, or (n, 3) float with ``neighbours``
         Coordinates; each patch is centred on its own centroid before fitting. k >= 10.
     sigma : float or (3,) float
         Standard deviation of each coordinate (D_ii = diag(sigma^2), eq. 30).
+    neighbours : (m, k) int, optional
+        Patch j is ``patches[neighbours[j]]`` (gathered inside the parallel loop, so the m x k x 3
+        copy is never made).
     max_iter : int
         Adjustments solved at most per patch.
     tol : float
@@ -748,9 +768,19 @@ def fit_quadrics(
     QuadricFit
     """
     pts = np.ascontiguousarray(patches, dtype=np.float64)
-    if pts.ndim != 3 or pts.shape[2] != 3:
-        raise ValueError(f"patches must have shape (m, k, 3), got {pts.shape}")
-    m, k, _ = pts.shape
+    if neighbours is None:
+        if pts.ndim != 3 or pts.shape[2] != 3:
+            raise ValueError(f"patches must have shape (m, k, 3), got {pts.shape}")
+        m, k, _ = pts.shape
+        pts = pts.reshape(m * k, 3)
+        index = np.arange(m * k, dtype=np.int64).reshape(m, k)
+    else:
+        index = np.ascontiguousarray(neighbours, dtype=np.int64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or index.ndim != 2:
+            raise ValueError("with neighbours, points must be (n, 3) and neighbours (m, k)")
+        if index.size and not (0 <= index.min() and index.max() < pts.shape[0]):
+            raise ValueError("neighbours must index rows of the points")
+        m, k = index.shape
     if k <= DOF_LOSS:
         raise ValueError(f"a quadric patch needs at least 10 points, got k={k}")
     params = np.zeros((m, N_PARAMS))
@@ -762,8 +792,9 @@ def fit_quadrics(
     converged = np.zeros(m, dtype=np.bool_)
     if m:
         _fit_patches(
-            pts, _variances(sigma), int(max_iter), float(tol), bool(t_first_only),
-            bool(accelerate), params, centroid, v, t, sigma0, iterations, converged,
+            pts, index, interleaved_order(m, numba.get_num_threads()), _variances(sigma),
+            int(max_iter), float(tol), bool(t_first_only), bool(accelerate), params, centroid,
+            v, t, sigma0, iterations, converged,
         )  # fmt: skip
     return QuadricFit(params, centroid, v, t, sigma0, iterations, converged)
 

@@ -13,6 +13,7 @@ from algorithms.quadric import (
     can_flag,
     fit_masked,
     fit_quadrics,
+    interleaved_order,
     min_patch_size,
     weighted_moments,
 )
@@ -345,3 +346,24 @@ def test_degenerate_patches_are_untested_not_flagged():
     bound = np.sqrt(patches.shape[1] - DOF_LOSS) * (1 + 1e-6)  # rounding slack of t_statistic
     assert np.all(np.isnan(t) | (t <= bound))
     assert np.isnan(t[:, 0]).any()  # the originally flagged points are now untested
+
+
+def test_neighbour_indices_give_the_same_fit_as_gathered_patches():
+    # The patch detector passes the cloud and k-nearest-neighbour rows instead of a copy.
+    rng = np.random.default_rng(12)
+    cloud = random_patches(rng, 1, 600, "curved", radius=1.0)[0]
+    nbr = np.argsort(np.linalg.norm(cloud[:50, None, :2] - cloud[None, :, :2], axis=2), axis=1)
+    nbr = nbr[:, :40]
+    gathered = fit_quadrics(cloud[nbr], 0.005, max_iter=60, tol=1e-9, t_first_only=True)
+    indexed = fit_quadrics(cloud, 0.005, neighbours=nbr, max_iter=60, tol=1e-9, t_first_only=True)
+    np.testing.assert_array_equal(indexed.t_stat[:, 0], gathered.t_stat[:, 0])
+    np.testing.assert_array_equal(indexed.iterations, gathered.iterations)
+    np.testing.assert_array_equal(indexed.centroid, gathered.centroid)
+
+
+@pytest.mark.parametrize(("m", "parts"), [(0, 2), (1, 2), (7, 2), (10, 4), (5, 8), (9, 1)])
+def test_interleaved_order_is_a_permutation(m, parts):
+    order = interleaved_order(m, parts)
+    assert sorted(order.tolist()) == list(range(m))
+    if m > parts:
+        assert order[:2].tolist() == [0, parts]  # the first thread's part takes every parts-th
