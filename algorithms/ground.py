@@ -72,9 +72,14 @@ The abstract leaves several things open; this implementation decides them as fol
 * **Raster fill (pull-push).** Empty cells take the weighted mean of the coarser pyramid level
   (2 x 2 blocks, weights the number of filled cells, capped at 1), recursively: smooth across
   large holes such as building footprints, exact where cells are filled.
-* **Duplicate XY points.** Only the lowest point of each XY position enters the TIN. The others
-  are ground when their representative is ground and they lie within ``min_object_height`` of its
-  adjusted elevation; otherwise object.
+* **Duplicate XY points and dense clouds.** Only the lowest point of each XY cell of
+  ``tin_cell`` metres (default 0.05; 0: of each exact XY position) enters the TIN, the classic
+  lowest-point seed of TIN filters: steps of ``min_object_height`` are resolved at any cell far
+  below it, airborne clouds (spacings of decimetres and more) keep every point, and a mobile
+  cloud (8,000 points per m2 in cloud A) is triangulated at 400 points per m2, 20x fewer. The
+  others are ground when their representative is ground and they lie within
+  ``min_object_height`` of its adjusted elevation; otherwise object (step 8 then classifies
+  every point against the ground surface).
 * **Defaults.** With the refinements above the iteration is best at a lower threshold than the
   45 degrees used on its own: ``slope_threshold = 35`` and ``min_object_height = 0.5`` m, one set
   for all seven ISPRS samples (mean total error 4.54 %; 4.86 % at 45 degrees, 5.06 % at 45 degrees
@@ -146,6 +151,7 @@ def classify_ground(
     max_object_size: float = 25.0,
     terrain_slope: float = 0.2,
     ground_tolerance: float = 0.5,
+    tin_cell: float = 0.05,
 ) -> GroundResult:
     """Separate terrain from object points by iterative elimination of TIN step edges.
 
@@ -178,6 +184,9 @@ def classify_ground(
     ground_tolerance : float
         Metres (>= 0, 0 disables step 8): a point less than this (plus 1.0 x the local grade)
         above the ground surface is ground.
+    tin_cell : float
+        Metres (>= 0): only the lowest point per XY cell of this size enters the TIN (0: per
+        exact XY position).
 
     Returns
     -------
@@ -185,7 +194,7 @@ def classify_ground(
     """
     xyz = _check_input(
         xyz, slope_threshold, max_iterations, min_object_height, low_outlier_depth,
-        max_object_size, terrain_slope, ground_tolerance,
+        max_object_size, terrain_slope, ground_tolerance, tin_cell,
     )
     n = xyz.shape[0]
     params = {
@@ -196,6 +205,7 @@ def classify_ground(
         "max_object_size": float(max_object_size),
         "terrain_slope": float(terrain_slope),
         "ground_tolerance": float(ground_tolerance),
+        "tin_cell": float(tin_cell),
     }
     if n < 3:
         return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
@@ -203,7 +213,7 @@ def classify_ground(
     xy, z = centre(xyz)  # step 1
     perm = spatial_order(xy)  # work in a cache-friendly order; results go back at the end
     xy, z = np.ascontiguousarray(xy[perm]), z[perm]
-    rep, unique_idx = lowest_per_xy(xy, z)  # step 2
+    rep, unique_idx = lowest_per_xy(xy, z, tin_cell)  # step 2
     tri, nbr, name = triangulate(xy[unique_idx])
     if tri.shape[0] == 0:  # all points collinear in XY: nothing to triangulate, nothing to filter
         return GroundResult(np.ones(n, bool), xyz[:, 2].copy(), _empty_info(params, n))
@@ -246,7 +256,8 @@ def classify_ground(
         "points": int(n),
         "triangles": int(tri.shape[0]),
         "triangulator": name,
-        "duplicates": int(n - unique_idx.size),
+        "tin_points": int(unique_idx.size),
+        "points_not_in_tin": int(n - unique_idx.size),
         "low_outliers": int(np.count_nonzero(low)),
         "iterations": len(edges),
         "edge_triangles_per_iteration": [int(e) for e in edges],
@@ -273,7 +284,8 @@ def _empty_info(params: dict[str, Any], n: int) -> dict[str, Any]:
         "points": int(n),
         "triangles": 0,
         "triangulator": None,
-        "duplicates": 0,
+        "tin_points": 0,
+        "points_not_in_tin": 0,
         "low_outliers": 0,
         "iterations": 0,
         "edge_triangles_per_iteration": [],
@@ -296,6 +308,7 @@ def _check_input(
     max_object_size: float,
     terrain_slope: float,
     ground_tolerance: float,
+    tin_cell: float,
 ) -> np.ndarray:
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -316,6 +329,8 @@ def _check_input(
         raise ParameterError(f"terrain_slope must be >= 0, got {terrain_slope!r}")
     if not ground_tolerance >= 0.0:
         raise ParameterError(f"ground_tolerance must be >= 0 metres, got {ground_tolerance!r}")
+    if not tin_cell >= 0.0:
+        raise ParameterError(f"tin_cell must be >= 0 metres, got {tin_cell!r}")
     return xyz
 
 
@@ -350,23 +365,34 @@ def _low_grid(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ij[:, 0] * shape[1] + ij[:, 1], shape
 
 
-def lowest_per_xy(xy: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Group points with identical XY; keep the lowest of each group for the TIN.
+def lowest_per_xy(
+    xy: np.ndarray, z: np.ndarray, cell: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Group points by XY cell of ``cell`` metres (0: identical XY); keep the lowest of each group
+    for the TIN.
 
     Returns
     -------
     rep : (n,) int64
-        Index of the representative (lowest point) of each point's XY group.
+        Index of the representative (lowest point) of each point's group.
     unique_idx : (u,) int64
         Sorted indices of the representatives.
     """
     n = z.shape[0]
-    # one argsort of x + iy orders by x, then y (3x faster than a three-key lexsort)
-    order = np.argsort(xy[:, 0] + 1j * xy[:, 1], kind="stable")
-    sx, sy = xy[order, 0], xy[order, 1]
-    starts = np.ones(n, bool)
-    starts[1:] = (sx[1:] != sx[:-1]) | (sy[1:] != sy[:-1])
-    if starts.all():  # the common case: no duplicates
+    if cell > 0.0:
+        ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
+        key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+        order = np.argsort(key, kind="stable")
+        sk = key[order]
+        starts = np.ones(n, bool)
+        starts[1:] = sk[1:] != sk[:-1]
+    else:
+        # one argsort of x + iy orders by x, then y (3x faster than a three-key lexsort)
+        order = np.argsort(xy[:, 0] + 1j * xy[:, 1], kind="stable")
+        sx, sy = xy[order, 0], xy[order, 1]
+        starts = np.ones(n, bool)
+        starts[1:] = (sx[1:] != sx[:-1]) | (sy[1:] != sy[:-1])
+    if starts.all():  # the common case: one point per group
         idx = np.arange(n, dtype=np.int64)
         return idx, idx
     group = np.cumsum(starts) - 1

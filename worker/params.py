@@ -114,6 +114,11 @@ class GroundParams(_Stage):
         description="Metres: final step, a point less than this (+ 1.0 x local grade) above the "
         "surface interpolated from the ground points is ground; 0 turns the step off.",
     )
+    tin_cell: float = Field(
+        0.05, ge=0.0, le=10.0,
+        description="Metres: only the lowest point per XY cell of this size enters the TIN "
+        "(thins dense mobile clouds; airborne clouds keep every point); 0: per exact XY position.",
+    )
 
 
 class HeightFieldParams(_Stage):

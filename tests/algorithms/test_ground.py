@@ -194,13 +194,50 @@ def test_duplicate_xy_points():
     xyz, truth = scene()
     ground_dup = xyz[truth][:20] + [0, 0, 0.1]  # 10 cm above a ground point: ground
     high_dup = xyz[truth][20:40] + [0, 0, 6.0]  # 6 m above a ground point: object
-    res = classify_ground(np.vstack([xyz, ground_dup, high_dup]))
+    res = classify_ground(np.vstack([xyz, ground_dup, high_dup]), tin_cell=0.0)  # exact XY only
     n = len(xyz)
-    assert res.info["duplicates"] == 40
+    assert res.info["points_not_in_tin"] == 40
     assert res.is_ground[n : n + 20].all()
     assert not res.is_ground[n + 20 :].any()
     # the lowest of each XY position is the one triangulated: the originals stay ground
     assert res.is_ground[np.flatnonzero(truth)[:40]].all()
+
+
+def slow_lowest_per_cell(xy, z, cell):
+    """For every point, the index of the lowest point of its cell (smallest index on ties)."""
+    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(int)
+    rep = np.empty(len(z), int)
+    for i in range(len(z)):
+        same = np.flatnonzero((ij == ij[i]).all(axis=1))
+        rep[i] = same[np.lexsort((same, z[same]))[0]]
+    return rep
+
+
+def test_lowest_per_cell_matches_a_per_point_search():
+    rng = np.random.default_rng(8)
+    xy = rng.random((300, 2)) * 0.5
+    z = np.round(rng.random(300), 2)  # ties in z: the smaller index wins
+    rep, unique_idx = G.lowest_per_xy(xy, z, 0.05)
+    np.testing.assert_array_equal(rep, slow_lowest_per_cell(xy, z, 0.05))
+    np.testing.assert_array_equal(unique_idx, np.unique(rep))
+
+
+def test_dense_cloud_is_thinned_for_the_tin_with_the_same_labels():
+    # 40,000 points on 10 m x 10 m (mobile-like density) with a 2 m box: the TIN takes the lowest
+    # point per 5 cm cell (40,000 cells at most, here fewer than the points), labels agree.
+    rng = np.random.default_rng(9)
+    n = 40000
+    xy = rng.random((n, 2)) * 10
+    z = 0.05 * xy[:, 0] + 0.005 * rng.standard_normal(n)
+    box = (np.abs(xy[:, 0] - 5) < 1) & (np.abs(xy[:, 1] - 5) < 1)
+    z[box] += 2.0
+    xyz = np.column_stack([xy, z])
+    thinned = classify_ground(xyz, max_object_size=5.0)
+    exact = classify_ground(xyz, max_object_size=5.0, tin_cell=0.0)
+    assert thinned.info["tin_points"] < 0.7 * n
+    assert exact.info["tin_points"] == n
+    assert (thinned.is_ground != exact.is_ground).mean() < 0.001
+    assert not thinned.is_ground[box].any() and thinned.is_ground[~box].mean() > 0.99
 
 
 def test_wide_terrace_is_ground_unless_the_terrace_step_is_disabled():
@@ -258,6 +295,7 @@ def test_collinear_points_are_all_ground():
         ({"max_object_size": -5.0}, "max_object_size"),
         ({"terrain_slope": -0.1}, "terrain_slope"),
         ({"ground_tolerance": -0.5}, "ground_tolerance"),
+        ({"tin_cell": -0.01}, "tin_cell"),
     ],
 )
 def test_bad_parameters_are_refused_by_name(kwargs, match):
