@@ -850,8 +850,15 @@ def opening_radii(window: float, cell: float, most: int = MAX_OPENINGS) -> np.nd
 @njit(cache=True)
 def _filter_rows(a: np.ndarray, r: int, take_max: bool) -> np.ndarray:
     """Running min (or max) over ``2 r + 1`` cells along each row, edges extended (van Herk /
-    Gil-Werman: two block-wise prefix scans, about three comparisons per cell for any window)."""
+    Gil-Werman: two block-wise prefix scans, about three comparisons per cell for any window).
+
+    A window at least as long as the row always reaches one of its ends, so it is the prefix
+    extreme up to its right end or the suffix extreme from its left end: two scans of the row,
+    no padding (mobile strips are narrower than the largest windows of step 6).
+    """
     nx, ny = a.shape
+    if 2 * r + 1 >= ny:
+        return _filter_rows_wide(a, r, take_max)
     w = 2 * r + 1
     length = ny + 2 * r
     padded = -(-length // w) * w
@@ -872,6 +879,27 @@ def _filter_rows(a: np.ndarray, r: int, take_max: bool) -> np.ndarray:
                 h[j] = max(h[j + 1], p[j]) if take_max else min(h[j + 1], p[j])
         for j in range(ny):
             out[i, j] = max(h[j], g[j + w - 1]) if take_max else min(h[j], g[j + w - 1])
+    return out
+
+
+@njit(cache=True)
+def _filter_rows_wide(a: np.ndarray, r: int, take_max: bool) -> np.ndarray:
+    """:func:`_filter_rows` for 2 r + 1 >= row length: window [j - r, j + r] clipped to the row
+    starts at 0 (j <= r: prefix extreme up to j + r) or else ends at the row's end (suffix
+    extreme from j - r)."""
+    nx, ny = a.shape
+    out = np.empty_like(a)
+    prefix = np.empty(ny, a.dtype)
+    suffix = np.empty(ny, a.dtype)
+    for i in range(nx):
+        prefix[0] = a[i, 0]
+        for j in range(1, ny):
+            prefix[j] = max(prefix[j - 1], a[i, j]) if take_max else min(prefix[j - 1], a[i, j])
+        suffix[ny - 1] = a[i, ny - 1]
+        for j in range(ny - 2, -1, -1):
+            suffix[j] = max(suffix[j + 1], a[i, j]) if take_max else min(suffix[j + 1], a[i, j])
+        for j in range(ny):
+            out[i, j] = prefix[min(ny - 1, j + r)] if j <= r else suffix[j - r]
     return out
 
 

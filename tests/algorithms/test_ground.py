@@ -372,8 +372,8 @@ def slow_pull_push_weighted(val: np.ndarray, wt: np.ndarray) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (8, 1), (7, 10), (16, 13)])
-@pytest.mark.parametrize("r", [1, 2, 5])
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (8, 1), (7, 10), (16, 13), (40, 23)])
+@pytest.mark.parametrize("r", [1, 2, 5, 8, 11, 30])  # windows shorter and longer than the rows
 def test_square_opening_matches_loops(shape, r):
     a = np.random.default_rng(r).random(shape)
     np.testing.assert_array_equal(G.square_opening(a, r), slow_opening(a, r))
