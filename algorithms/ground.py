@@ -354,15 +354,10 @@ def spatial_order(xy: np.ndarray) -> np.ndarray:
     return np.argsort(_low_grid(xy)[0], kind="stable")
 
 
-def _low_grid(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _low_grid(xy: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
     """Row-major cell index of each point in the grid of 1.6 mean point spacings, and its shape."""
-    n = xy.shape[0]
-    lo = xy.min(axis=0)
-    ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
-    cell = max(1.6 * math.sqrt(ext[0] * ext[1] / n), 1e-6)
-    shape = (ext / cell).astype(np.int64) + 1
-    ij = ((xy - lo) / cell).astype(np.int64)
-    return ij[:, 0] * shape[1] + ij[:, 1], shape
+    geo = RasterGeometry.fit(xy, spacings=1.6, min_cell=1e-6)
+    return geo.flat, geo.shape
 
 
 def lowest_per_xy(
@@ -380,8 +375,7 @@ def lowest_per_xy(
     """
     n = z.shape[0]
     if cell > 0.0:
-        ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
-        key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+        key = RasterGeometry.at(xy, cell).flat
         order = np.argsort(key, kind="stable")
         sk = key[order]
         starts = np.ones(n, bool)
@@ -766,12 +760,19 @@ class RasterGeometry:
     flat: np.ndarray
 
     @classmethod
-    def fit(cls, xy: np.ndarray, spacings: float = 1.0) -> RasterGeometry:
-        """Cells ``spacings`` mean point spacings wide (mean spacing = sqrt(area / n))."""
-        n = xy.shape[0]
+    def fit(
+        cls, xy: np.ndarray, spacings: float = 1.0, min_cell: float = 1e-3
+    ) -> RasterGeometry:
+        """Cells ``spacings`` mean point spacings wide (mean spacing = sqrt(area / n)), at least
+        ``min_cell`` metres."""
+        ext = np.maximum(xy.max(axis=0) - xy.min(axis=0), 1e-9)
+        return cls.at(xy, max(spacings * float(np.sqrt(ext[0] * ext[1] / xy.shape[0])), min_cell))
+
+    @classmethod
+    def at(cls, xy: np.ndarray, cell: float) -> RasterGeometry:
+        """Cells of ``cell`` metres from the lower-left corner of the points' extent."""
         lo = xy.min(axis=0)
         ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
-        cell = max(spacings * float(np.sqrt(ext[0] * ext[1] / n)), 1e-3)
         shape = (ext / cell).astype(np.int64) + 1
         ij = ((xy - lo) / cell).astype(np.int64)
         return cls(lo, cell, (int(shape[0]), int(shape[1])), ij[:, 0] * shape[1] + ij[:, 1])
