@@ -10,17 +10,9 @@ import numpy as np
 import pytest
 
 from lidar_outliers.cli import main
+from tests.cli.test_detect import _cli
 
 TRANSIENT_BIT = 128
-
-
-def _cli(capsys, *args: str) -> tuple[int, str, str]:
-    try:
-        status = main(list(args))
-    except SystemExit as exc:
-        status = exc.code if isinstance(exc.code, int) else 1
-    out = capsys.readouterr()
-    return status, out.out, out.err
 
 
 @pytest.fixture(scope="module")
