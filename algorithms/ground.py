@@ -106,8 +106,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numba import njit
 
+from algorithms.jit import njit
 from algorithms.tin import delaunay, vertex_triangles
 from worker.errors import ParameterError
 

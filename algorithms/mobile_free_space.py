@@ -28,8 +28,8 @@ beam is enough. The margin assumes beams meet the ground steeper than about 5 de
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
 
+from algorithms.jit import njit, prange
 from algorithms.result import DetectorResult
 from worker.errors import ParameterError
 

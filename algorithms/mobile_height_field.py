@@ -33,10 +33,10 @@ the neighbour search is scipy's cKDTree.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
 from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
+from algorithms.jit import njit, prange
 from algorithms.result import DetectorResult
 from algorithms.stats import MAD_TO_SIGMA
 from worker.errors import ParameterError

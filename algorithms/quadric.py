@@ -55,8 +55,8 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from numba import njit, prange
 
+from algorithms.jit import njit, prange
 from algorithms.stats import t_critical_value
 
 #: Unknowns of eq. 18 and the redundancy lost to them (10 parameters, 1 constraint).

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from numba import njit, prange
 
 from algorithms.checks import check_xyz
+from algorithms.jit import njit, prange
 from algorithms.patch import check_sigma
 from algorithms.quadric import DOF_LOSS, N_PARAMS, fit_masked, min_patch_size
 from algorithms.result import DetectorResult

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
+from statistics import NormalDist
 
-# scipy.special, not scipy.stats: the latter costs about a second of import time per CLI call.
-from scipy.special import ndtri, stdtrit
+import numpy as np
 
 #: Factor that makes the median absolute deviation a consistent estimator of a normal sigma
 #: (1 / Phi^-1(3/4)).
@@ -24,7 +23,7 @@ def normal_critical_value(alpha: float) -> float:
 
     Used with eq. 17 (the standardised difference of the temporal detector).
     """
-    return float(-ndtri(_check_alpha(alpha) / 2.0))
+    return -NormalDist().inv_cdf(_check_alpha(alpha) / 2.0)
 
 
 def t_critical_value(alpha: float, dof: float | np.ndarray) -> float | np.ndarray:
@@ -34,6 +33,10 @@ def t_critical_value(alpha: float, dof: float | np.ndarray) -> float | np.ndarra
     shape (a float for a scalar). Used with eq. 31 (t(n - 9) for the quadric patches). Entries
     with ``dof <= 0`` give NaN.
     """
+    # Imported here: scipy.special costs about 0.1 s, which the temporal command need not pay
+    # (and scipy.stats about a second).
+    from scipy.special import stdtrit
+
     alpha = _check_alpha(alpha)
     dof_arr = np.asarray(dof, dtype=np.float64)
     with np.errstate(invalid="ignore"):

@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
 
 from algorithms.result import DetectorResult
 from algorithms.stats import mad_sigma, normal_critical_value
@@ -47,182 +48,336 @@ _MIN_ONE_MINUS_A0 = 1e-10
 #: Tested points above which ``estimate_sigma`` works on an evenly strided subsample.
 SIGMA_SAMPLE_POINTS = 250_000
 
-#: Points per parallel block in ``window_differences``, and the call size below which it runs
-#: on one thread.
-_BLOCK = 4096
-_PARALLEL_POINTS = 8 * _BLOCK
+#: Windows per block in ``window_differences`` (a block's two dozen temporaries of this length
+#: stay near the CPU), and the call size below which it runs on one thread.
+_BLOCK = 16384
+_PARALLEL_POINTS = 2 * _BLOCK
+
+#: Shortest run of alike consecutive windows that ``window_differences`` serves by slices.
+_MIN_RUN = 64
 
 
 # --------------------------------------------------------------------------------------------
-# Per-window kernels (eqs. 11, 14-17)
+# Per-window kernels (eqs. 11, 14-17), each vectorised over a block of windows
 # --------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
-def smoother_weights(delta: np.ndarray, weight: np.ndarray, out: np.ndarray, w: int) -> bool:
-    """Smoother coefficients a_i(k) of eq. 11 with lambda from the inverse moment matrix of eq. 14.
+@dataclass
+class WindowBlock:
+    """b windows of at most w rows, stored by window position (row i of every window at once).
 
-    delta : (>= w,) float64, t_{k+i} - t_k for the window's w points (any time unit).
-    weight : (>= w,) float64, 1 / sigma_{k+i}^2 (any common positive factor).
-    out : (>= w,) float64, receives a_i(k) in window order. Only the first w entries are used
-    (callers reuse buffers: slicing in the hot loop costs reference counting).
-
-    Returns False (and leaves ``out`` undefined) when the moment matrix is singular, i.e. the
-    window holds fewer than three distinct times. The a_i are invariant to rescaling delta by a
-    time unit u (M -> D M D with D = diag(1, 1/u, 1/u^2), and D cancels in a_i) and to a common
-    factor on the weights, so callers may pass delta / u and sigma in any unit.
+    ``t[i]`` (b,) and ``z[i]`` (m, b) are the i-th rows of the b windows; ``weight[i]`` (b,) is
+    1 / sigma^2 of those rows, 0 for padding (a window shorter than w), or ``weight`` is None for
+    unit sigma everywhere. ``t_k``, ``z_k`` and ``variance_k`` (None: 1) belong to the tested
+    points; ``t_first`` and ``t_last`` are each window's first and last time.
     """
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
-    s4 = 0.0
-    for i in range(w):
-        wi = weight[i]
-        d = delta[i]
-        d2 = d * d
-        s0 += wi
-        s1 += wi * d
-        s2 += wi * d2
-        s3 += wi * d2 * d
-        s4 += wi * d2 * d2
-    # First row of the inverse of the symmetric M = [[s0,s1,s2],[s1,s2,s3],[s2,s3,s4]] via
-    # cofactors: (lambda_1, lambda_2, lambda_3) of eq. 14.
-    c0 = s2 * s4 - s3 * s3
-    c1 = s3 * s2 - s1 * s4
-    c2 = s1 * s3 - s2 * s2
-    det = s0 * c0 + s1 * c1 + s2 * c2
-    if not det > _SINGULAR_RATIO * s0 * s2 * s4:
-        return False
-    lam1 = c0 / det
-    lam2 = c1 / det
-    lam3 = c2 / det
-    for i in range(w):
-        d = delta[i]
-        out[i] = weight[i] * (lam1 + lam2 * d + lam3 * d * d)
-    return True
+
+    t: list[np.ndarray]
+    z: list[np.ndarray]
+    weight: list[np.ndarray] | None
+    t_k: np.ndarray
+    z_k: np.ndarray
+    variance_k: np.ndarray | None
+    t_first: np.ndarray
+    t_last: np.ndarray
 
 
-@njit(cache=True)
-def predict_from_window(
-    a: np.ndarray, z: np.ndarray, start: int, w: int, k: int, out: np.ndarray
-) -> None:
-    """Eq. 15 for every column of z: out[j] = z_p(k) - z(k) for the window rows start:start+w.
+def smoother_weights(block: WindowBlock) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """Smoother coefficients a_i(k) of eq. 11 (lambda of eq. 14), by orthogonal polynomials.
 
-    a : (>= w,) a_i(k) from ``smoother_weights``. z : (n, m) series. k : row of the tested point
-    (start <= k < start + w). out : (m,) receives the predictions relative to z(k): the
-    neighbours' a_i sum to 1 - a_0(k), so eq. 15 is an affine combination and subtracting the
-    local reference z(k) first changes nothing but the rounding (coordinates near 5e6 m).
+    Returns (a, a_0, usable): a[i] (b,) for every window position i (0 for padding), a_0(k) (b,)
+    the tested point's own coefficient, and usable (b,) False where the window holds fewer than
+    three distinct times or a_0(k) is 1 (the point carries the whole fit).
+
+    Eq. 11 with lambda = M^-1 e_1 (eq. 14) is the least-squares quadratic's hat matrix,
+    a_i = w_i p_i^T M^-1 p_k with p = (1, delta, delta^2), and the hat matrix does not depend on
+    the polynomial basis. Inverting M itself (condition number up to 1e4 and more with
+    uneven weights) loses digits; in the basis of Forsythe's polynomials, orthogonal over the
+    window's weighted points (q_0 = 1, q_1 = delta - alpha_1, q_2 = (delta - alpha_2) q_1 -
+    beta_1), M is diagonal (N_0, N_1, N_2) and a_i = w_i sum_j q_j(i) q_j(k) / N_j exactly.
+
+    Times enter as delta = (t_{k+i} - t_k) / u with u the window's largest |delta|; the a_i do
+    not depend on u nor on a common factor of the weights.
     """
-    m = z.shape[1]
-    centre = k - start
-    for j in range(m):
-        out[j] = 0.0
-    for i in range(w):
-        if i != centre:
-            a_i = a[i]
-            for j in range(m):
-                out[j] += a_i * (z[start + i, j] - z[k, j])
-    one_minus_a0 = 1.0 - a[centre]
-    for j in range(m):
-        out[j] /= one_minus_a0
+    inv_unit = 1.0 / np.maximum(block.t_k - block.t_first, block.t_last - block.t_k)
+    weight = block.weight
+    b = block.t_k.size
+    scratch = np.empty(b)
+
+    def weighted(i: int, x: np.ndarray) -> np.ndarray:
+        return x if weight is None else np.multiply(weight[i], x, out=scratch)
+
+    n0 = np.full(b, float(len(block.t))) if weight is None else np.sum(weight, axis=0)
+    q1 = [np.subtract(t_i, block.t_k) for t_i in block.t]  # delta, then q_1 in place
+    s1 = np.zeros(b)
+    for i, d in enumerate(q1):
+        d *= inv_unit
+        s1 += weighted(i, d)
+    alpha1 = s1 / n0
+    n1, cubes = np.zeros(b), np.zeros(b)
+    for i, q in enumerate(q1):
+        q -= alpha1
+        square = np.multiply(q, q, out=scratch) if weight is None else weighted(i, q * q)
+        n1 += square
+        square *= q
+        cubes += square
+    gamma, beta1 = cubes / n1, n1 / n0  # alpha_2 - alpha_1 and beta_1
+    q2, n2 = [], np.zeros(b)
+    for i, q in enumerate(q1):
+        r = np.subtract(q, gamma)
+        r *= q
+        r -= beta1
+        q2.append(r)
+        n2 += weighted(i, r * r)
+    q1_k = -alpha1  # delta_k = 0
+    q2_k = (q1_k - gamma) * q1_k - beta1
+    c1, c2 = q1_k / n1, q2_k / n2
+    a = q1  # w_i (1 / N_0 + c_1 q_1(i) + c_2 q_2(i)), in place of q_1
+    for i, (a_i, r) in enumerate(zip(a, q2, strict=True)):
+        a_i *= c1
+        a_i += 1.0 / n0
+        r *= c2
+        a_i += r
+        if weight is not None:
+            a_i *= weight[i]
+    a_0 = 1.0 / n0 + c1 * q1_k + c2 * q2_k
+    if block.variance_k is not None:
+        a_0 /= block.variance_k
+    usable = n2 > _SINGULAR_RATIO * n0
+    usable &= 1.0 - a_0 > _MIN_ONE_MINUS_A0
+    return a, a_0, usable
 
 
-@njit(cache=True)
-def difference_variance(a: np.ndarray, variance: np.ndarray, w: int, centre: int) -> float:
-    """Eq. 16: variance of z(k) - z_p(k).
+def predict_from_window(block: WindowBlock, a: list[np.ndarray], a_0: np.ndarray) -> np.ndarray:
+    """Eq. 15 relative to the tested point: z_p(k) - z(k), (m, b).
 
-    a : (>= w,) a_i(k). variance : (>= w,) sigma_{k+i}^2 (metres^2) of the window's w points.
-    centre : position of k in the window.
+    The neighbours' a_i sum to 1 - a_0(k), so eq. 15 is an affine combination and subtracting
+    the local reference z(k) first changes nothing but the rounding (coordinates near 5e6 m).
+    The tested point's own row adds a_0 (z(k) - z(k)) = 0, so it needs no exclusion.
     """
-    acc = 0.0
-    for i in range(w):
-        if i != centre:
-            acc += a[i] * a[i] * variance[i]
-    one_minus_a0 = 1.0 - a[centre]
-    return variance[centre] + acc / (one_minus_a0 * one_minus_a0)
+    acc = np.zeros_like(block.z_k)
+    term = np.empty_like(block.z_k)
+    for a_i, z_i in zip(a, block.z, strict=True):
+        np.subtract(z_i, block.z_k, out=term)
+        term *= a_i
+        acc += term
+    acc /= 1.0 - a_0
+    return acc
 
 
-@njit(cache=True)
-def standardised_difference(dz: float, sigma_dz: float) -> float:
+def difference_variance(block: WindowBlock, a_0: np.ndarray) -> np.ndarray:
+    """Eq. 16, the variance of z(k) - z_p(k): sigma_k^2 + sum_{i!=k} a_i^2 sigma_i^2 / (1 - a_0)^2.
+
+    With weights 1 / sigma_i^2 the sum collapses: a_i^2 sigma_i^2 = w_i (lambda . p_i)^2 with
+    p_i = (1, delta_i, delta_i^2), whose sum over the whole window is lambda^T M lambda =
+    lambda_1 (M lambda = e_1, eq. 14), and the point's own term is w_k lambda_1^2 = a_0 lambda_1.
+    So eq. 16 = sigma_k^2 + lambda_1 / (1 - a_0) = sigma_k^2 / (1 - a_0): the leave-one-out
+    variance of a least-squares smoother (a_0 is its hat-matrix diagonal). The tests check it
+    against the literal sum.
+    """
+    variance_k = 1.0 if block.variance_k is None else block.variance_k
+    return variance_k / (1.0 - a_0)
+
+
+def standardised_difference(dz: np.ndarray, sigma_dz: np.ndarray) -> np.ndarray:
     """Eq. 17: dz / sigma_dz with dz = z(k) - z_p(k) and sigma_dz = sqrt(eq. 16).
 
     Standard normal under H0: dz = 0.
     """
-    return dz / sigma_dz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return dz / sigma_dz
 
 
-@njit(cache=True)
-def _differences_block(
-    t: np.ndarray,
-    z: np.ndarray,
-    sigma: np.ndarray,
-    targets: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    max_w: int,
-    first: int,
-    stop: int,
-    dz: np.ndarray,
-    sigma_dz: np.ndarray,
-) -> None:
-    """``window_differences`` for targets[first:stop], writing into dz and sigma_dz."""
-    m = z.shape[1]
-    unit_sigma = sigma.shape[0] == 0
-    delta = np.empty(max_w)
-    weight = np.ones(max_w)
-    variance = np.ones(max_w)
-    a = np.empty(max_w)
-    pred = np.empty(m)
-    for q in range(first, stop):
-        k = targets[q]
-        start = lo[q]
-        w = hi[q] - start
-        if w < MIN_SEGMENT_POINTS:
-            continue
-        t_k = t[k]
-        # Per-window time unit (largest |delta|, t sorted in the window): keeps the delta^4
-        # sums of eq. 14 near 1 whatever the time step.
-        unit = max(t_k - t[start], t[start + w - 1] - t_k)
-        if not unit > 0.0:
-            continue
-        inv_unit = 1.0 / unit
-        for i in range(w):
-            delta[i] = (t[start + i] - t_k) * inv_unit
-        if not unit_sigma:
-            for i in range(w):
-                s = sigma[start + i]
-                variance[i] = s * s
-                weight[i] = 1.0 / variance[i]
-        if not smoother_weights(delta, weight, a, w):
-            continue
-        if not 1.0 - a[k - start] > _MIN_ONE_MINUS_A0:
-            continue
-        predict_from_window(a, z, start, w, k, pred)
-        for j in range(m):
-            dz[q, j] = -pred[j]
-        sigma_dz[q] = math.sqrt(difference_variance(a, variance, w, k - start))
+def _block_differences(block: WindowBlock) -> tuple[np.ndarray, np.ndarray]:
+    """dz (m, b) = z(k) - z_p(k) (eq. 15) and sigma_dz (b,) = sqrt(eq. 16); NaN if unusable."""
+    with np.errstate(divide="ignore", invalid="ignore"):  # unusable windows, masked below
+        a, a_0, usable = smoother_weights(block)
+        dz = predict_from_window(block, a, a_0)
+        np.negative(dz, out=dz)
+        sigma_dz = np.sqrt(difference_variance(block, a_0))
+    dz[:, ~usable] = np.nan
+    sigma_dz[~usable] = np.nan
+    return dz, sigma_dz
 
 
-@njit(cache=True, parallel=True)
-def _differences_parallel(
-    t: np.ndarray,
-    z: np.ndarray,
-    sigma: np.ndarray,
-    targets: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    max_w: int,
-    dz: np.ndarray,
-    sigma_dz: np.ndarray,
-) -> None:
-    """``_differences_block`` over blocks of _BLOCK targets on all threads."""
-    p = targets.shape[0]
-    n_blocks = (p + _BLOCK - 1) // _BLOCK
-    for b in prange(n_blocks):
-        _differences_block(
-            t, z, sigma, targets, lo, hi, max_w, b * _BLOCK, min(p, (b + 1) * _BLOCK), dz, sigma_dz
-        )
+# --------------------------------------------------------------------------------------------
+# Many windows: blocks of slices or of gathered rows, on all threads
+# --------------------------------------------------------------------------------------------
+
+
+def _sliced_block(
+    t: np.ndarray, z: np.ndarray, sigma: np.ndarray, first: int, stop: int, centre: int, w: int
+) -> WindowBlock:
+    """Windows of rows k in [first, stop), each rows k - centre to k - centre + w - 1 (views)."""
+    rows = [slice(first - centre + i, stop - centre + i) for i in range(w)]
+    unit = sigma.size == 0
+    variance = None if unit else sigma * sigma
+    return WindowBlock(
+        t=[t[r] for r in rows],
+        z=[z[:, r] for r in rows],
+        weight=None if unit else [1.0 / variance[r] for r in rows],
+        t_k=t[first:stop],
+        z_k=z[:, first:stop],
+        variance_k=None if unit else variance[first:stop],
+        t_first=t[rows[0]],
+        t_last=t[rows[-1]],
+    )
+
+
+def _gathered_block(
+    t: np.ndarray, z: np.ndarray, sigma: np.ndarray, k: np.ndarray, lo: np.ndarray,
+    hi: np.ndarray, w: int,
+) -> WindowBlock:
+    """Windows of rows k, rows lo:hi each, padded to w rows (the last row repeated, weight 0).
+
+    t (n,), z (m, n), sigma (n,) or (0,) for unit sigma.
+    """
+    padded = bool(np.any(hi - lo < w))
+    rows = [np.minimum(lo + i, hi - 1) if padded else lo + i for i in range(w)]
+    weight = None
+    if sigma.size == 0:
+        variance_k = None
+        if padded:
+            weight = [(lo + i < hi).astype(np.float64) for i in range(w)]
+    else:
+        inv_variance = 1.0 / (sigma * sigma)
+        weight = [np.where(lo + i < hi, inv_variance[r], 0.0) for i, r in enumerate(rows)]
+        variance_k = sigma[k] * sigma[k]
+    return WindowBlock(
+        t=[t[r] for r in rows], z=[z[:, r] for r in rows], weight=weight, t_k=t[k],
+        z_k=z[:, k], variance_k=variance_k, t_first=t[lo], t_last=t[hi - 1],
+    )
+
+
+@dataclass
+class _Plan:
+    """How ``_differences`` computes p windows: slices where it can, gathered rows elsewhere.
+
+    ``runs`` [(q0, q1, k0)]: outputs q0:q1 are the rows k0, k0 + 1, ... with windows of ``width``
+    rows holding the tested point at position ``centre`` (served by slices); only the outputs
+    where ``served`` (p,) is True keep that result. ``gathered`` (q, k, lo, hi): the other
+    outputs q with MIN_SEGMENT_POINTS rows or more, row k predicted from rows lo:hi.
+    """
+
+    centre: int
+    width: int
+    runs: list[tuple[int, int, int]]
+    served: np.ndarray
+    gathered: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _covered(p: int, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """(p,) bool, True inside the sorted, disjoint ranges starts[i]:ends[i]."""
+    lengths = np.diff(np.r_[0, np.c_[starts, ends].ravel(), p])  # gap, range, gap, ..., gap
+    return np.repeat(np.tile([False, True], starts.size + 1)[: lengths.size], lengths)
+
+
+def _plan_windows(targets: np.ndarray, lo: np.ndarray, hi: np.ndarray, n: int) -> _Plan:
+    """The plan for arbitrary windows: slices serve the commonest shape in consecutive rows.
+
+    Most windows are [k - n1, k + n2] (segment ends and short segments are the exceptions), so
+    the commonest (position of k, size) is computed for every row of each run of _MIN_RUN or
+    more consecutive targets, the exceptions included, and kept only where it is right.
+    """
+    size, position = hi - lo, targets - lo
+    w = int(size.max(initial=0))
+    if w < MIN_SEGMENT_POINTS:
+        empty = np.zeros(0, np.int64)
+        return _Plan(0, 0, [], np.zeros(targets.size, bool), (empty, empty, empty, empty))
+    full = size == w
+    c = int(np.bincount(position[full]).argmax())
+    inside = (targets >= c) & (targets - c + w <= n)
+    cut = np.flatnonzero((np.diff(targets) != 1) | (inside[1:] != inside[:-1])) + 1
+    starts, ends = np.r_[0, cut], np.r_[cut, targets.size]
+    keep = inside[starts] & (ends - starts >= _MIN_RUN)
+    runs = [(a, b, int(targets[a])) for a, b in zip(starts[keep], ends[keep], strict=True)]
+    served = _covered(targets.size, starts[keep], ends[keep]) & full & (position == c)
+    q = np.flatnonzero(~served & (size >= MIN_SEGMENT_POINTS))
+    return _Plan(c, w, runs, served, (q, targets[q], lo[q], hi[q]))
+
+
+def _plan_segments(starts: np.ndarray, ends: np.ndarray, n1: int, n2: int) -> _Plan:
+    """The plan for every row of contiguous segments (rows starts[i]:ends[i], covering 0:n).
+
+    The interior rows of segments of n1 + n2 + 1 rows or more have the window [k - n1, k + n2]
+    and are sliced; their first n1 and last n2 rows (window shifted inside) and the rows of
+    shorter segments (the whole segment) are gathered: the rule of ``window_bounds``.
+    """
+    n = int(ends[-1]) if ends.size else 0
+    w = n1 + n2 + 1
+    length = ends - starts
+    long = length >= w
+    served = _covered(n, starts[long] + n1, ends[long] - n2)
+    runs = [(n1, n - n2, n1)] if n - n2 > n1 else []
+    s, e = starts[long], ends[long]
+    head = (s[:, None] + np.arange(n1)).ravel()
+    tail = (e[:, None] - n2 + np.arange(n2)).ravel()
+    medium = (length >= MIN_SEGMENT_POINTS) & ~long
+    m_len = length[medium]
+    seg_lo, seg_hi = np.repeat(starts[medium], m_len), np.repeat(ends[medium], m_len)
+    inner = np.arange(seg_lo.size) - np.repeat(np.cumsum(m_len) - m_len, m_len)
+    k = np.r_[head, tail, seg_lo + inner]
+    lo = np.r_[np.repeat(s, n1), np.repeat(e - w, n2), seg_lo]
+    hi = np.r_[np.repeat(s + w, n1), np.repeat(e, n2), seg_hi]
+    order = np.argsort(k, kind="stable")
+    k, lo, hi = k[order], lo[order], hi[order]
+    return _Plan(n1, w, runs, served, (k, k, lo, hi))
+
+
+def worker_threads() -> int:
+    """Threads for the numpy kernels: NUMBA_NUM_THREADS when set (the knob of the numba
+    detectors), else the CPUs this process may run on."""
+    env = os.environ.get("NUMBA_NUM_THREADS", "")
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity else (os.cpu_count() or 1)
+
+
+def _differences(
+    t: np.ndarray, z: np.ndarray, sigma: np.ndarray, plan: _Plan, p: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Run a plan: dz (p, m) and sigma_dz (p,) as ``window_differences`` returns them.
+
+    t (n,), z (m, n) C-contiguous, sigma (n,) or (0,). Blocks of _BLOCK windows run on
+    ``worker_threads()`` threads (numpy releases the GIL inside its loops).
+    """
+    dz = np.full((z.shape[0], p), np.nan)  # (m, p) while filled: blocks write rows
+    sigma_dz = np.full(p, np.nan)
+
+    def sliced(q0: int, q1: int, k0: int) -> None:
+        block = _sliced_block(t, z, sigma, k0, k0 + q1 - q0, plan.centre, plan.width)
+        d, s = _block_differences(block)
+        keep = plan.served[q0:q1]
+        if keep.all():
+            dz[:, q0:q1], sigma_dz[q0:q1] = d, s
+        else:
+            dz[:, q0:q1][:, keep], sigma_dz[q0:q1][keep] = d[:, keep], s[keep]
+
+    q, k, lo, hi = plan.gathered
+    width = int(np.max(hi - lo, initial=0))
+    full = np.flatnonzero(hi - lo == width)  # full windows first: their blocks need no padding
+    q, k, lo, hi = (np.r_[a[full], np.delete(a, full)] for a in (q, k, lo, hi))
+
+    def gathered(a: int, b: int) -> None:
+        block = _gathered_block(t, z, sigma, k[a:b], lo[a:b], hi[a:b], width)
+        dz[:, q[a:b]], sigma_dz[q[a:b]] = _block_differences(block)
+
+    tasks = [
+        (sliced, (a, min(q1, a + _BLOCK), k0 + a - q0))
+        for q0, q1, k0 in plan.runs
+        for a in range(q0, q1, _BLOCK)
+    ]
+    tasks += [(gathered, (a, min(q.size, a + _BLOCK))) for a in range(0, q.size, _BLOCK)]
+    threads = min(worker_threads(), len(tasks))
+    if p < _PARALLEL_POINTS or threads < 2:
+        for fn, args in tasks:
+            fn(*args)
+    else:
+        with ThreadPoolExecutor(threads) as pool:
+            for _ in pool.map(lambda task: task[0](*task[1]), tasks):
+                pass
+    return dz.T, sigma_dz
 
 
 def window_differences(
@@ -243,26 +398,30 @@ def window_differences(
 
     Returns dz (p, m) = z(k) - z_p(k) (eq. 15) and sigma_dz (p,) = sqrt(eq. 16); NaN for points
     whose window is degenerate (fewer than MIN_SEGMENT_POINTS rows or three distinct times, or
-    a_0(k) = 1). Eq. 17 is dz / sigma_dz[:, None]. Every point is computed alone, so the result
-    does not depend on how the points are split into calls or threads.
+    a_0(k) = 1). Eq. 17 is dz / sigma_dz[:, None]. Every point is computed alone, with the
+    same operations in the same order whether its window is sliced or gathered, so the result
+    does not depend on how the points are split into calls, blocks or threads.
     """
     t = np.ascontiguousarray(t, dtype=np.float64)
-    z = np.ascontiguousarray(z, dtype=np.float64)
+    z_rows = np.ascontiguousarray(np.asarray(z, dtype=np.float64).T)  # (m, n): rows slice fast
     sigma = np.ascontiguousarray(sigma, dtype=np.float64)
-    targets = np.ascontiguousarray(targets, dtype=np.int64)
-    lo = np.ascontiguousarray(lo, dtype=np.int64)
-    hi = np.ascontiguousarray(hi, dtype=np.int64)
-    p = targets.size
-    dz = np.full((p, z.shape[1]), np.nan)
-    sigma_dz = np.full(p, np.nan)
-    if p == 0:
-        return dz, sigma_dz
-    max_w = int(np.max(hi - lo))
-    if p < _PARALLEL_POINTS:  # thread start-up costs more than it saves on small calls
-        _differences_block(t, z, sigma, targets, lo, hi, max_w, 0, p, dz, sigma_dz)
-    else:
-        _differences_parallel(t, z, sigma, targets, lo, hi, max_w, dz, sigma_dz)
-    return dz, sigma_dz
+    targets = np.asarray(targets, dtype=np.int64)
+    plan = _plan_windows(targets, np.asarray(lo, np.int64), np.asarray(hi, np.int64), t.size)
+    return _differences(t, z_rows, sigma, plan, targets.size)
+
+
+def segment_differences(
+    t: np.ndarray, z: np.ndarray, starts: np.ndarray, ends: np.ndarray, n1: int, n2: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``window_differences`` with unit sigma for every row of the segments starts:ends.
+
+    t (n,), z (m, n) C-contiguous (one row per series); the segments cover rows 0:n in order.
+    Each row's window follows ``window_bounds``; equal to ``window_differences`` with those
+    windows, without the (n,) window arrays.
+    """
+    plan = _plan_segments(starts, ends, n1, n2)
+    return _differences(t, z, np.empty(0), plan, t.size)
+
 
 
 # --------------------------------------------------------------------------------------------
@@ -287,45 +446,46 @@ def window_bounds(
     return lo, hi
 
 
-@njit(cache=True)
-def segment_windows(
-    t: np.ndarray, group_bounds: np.ndarray, max_gap: np.ndarray, n1: int, n2: int
-) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Cut sorted groups into segments at time gaps and give every row its window.
+def _segment_of_rows(
+    starts: np.ndarray, ends: np.ndarray, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end row of the segment holding each row (segments given sorted, contiguous)."""
+    which = np.searchsorted(starts, rows, side="right") - 1
+    return starts[which], ends[which]
+
+
+def cut_segments(
+    t: np.ndarray, group_bounds: np.ndarray, max_gap: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cut sorted groups into segments at time gaps: (starts, ends) rows, covering 0:n in order.
 
     t : (n,) times sorted within each group; group g is rows group_bounds[g]:group_bounds[g+1].
     max_gap : (g,) seconds per group; a step t[r] - t[r-1] > max_gap starts a new segment.
-    Returns lo, hi (n,) int64 window rows (as ``window_bounds``), the number of segments and the
-    number of segments shorter than MIN_SEGMENT_POINTS (their rows stay untested).
     """
     n = t.shape[0]
-    size = n1 + n2 + 1
-    lo = np.empty(n, dtype=np.int64)
-    hi = np.empty(n, dtype=np.int64)
-    n_segments = 0
-    n_short = 0
-    for g in range(group_bounds.shape[0] - 1):
-        g_start = group_bounds[g]
-        g_end = group_bounds[g + 1]
-        s = g_start
-        for r in range(g_start + 1, g_end + 1):
-            if r < g_end and not t[r] - t[r - 1] > max_gap[g]:
-                continue
-            n_segments += 1
-            if r - s < MIN_SEGMENT_POINTS:
-                n_short += 1
-            for k in range(s, r):
-                if r - s < size:
-                    lo[k] = s
-                    hi[k] = r
-                else:
-                    lo[k] = min(max(k - n1, s), r - size)
-                    hi[k] = lo[k] + size
-            s = r
-    return lo, hi, n_segments, n_short
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    group_sizes = np.diff(group_bounds)
+    new_segment = np.zeros(n, dtype=bool)
+    new_segment[group_bounds[:-1][group_sizes > 0]] = True
+    new_segment[1:] |= np.diff(t) > np.repeat(np.asarray(max_gap, np.float64), group_sizes)[1:]
+    starts = np.flatnonzero(new_segment)
+    return starts, np.r_[starts[1:], n]
 
 
-@njit(cache=True)
+def segment_windows(
+    t: np.ndarray, group_bounds: np.ndarray, max_gap: np.ndarray, n1: int, n2: int
+) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """``cut_segments``, then every row's window: lo, hi (n,) int64 as ``window_bounds``, the
+    number of segments and the number shorter than MIN_SEGMENT_POINTS (left untested)."""
+    starts, ends = cut_segments(t, group_bounds, max_gap)
+    lengths = ends - starts
+    lo, hi = window_bounds(
+        np.arange(t.shape[0]), np.repeat(starts, lengths), np.repeat(ends, lengths), n1, n2
+    )
+    return lo, hi, int(starts.size), int(np.count_nonzero(lengths < MIN_SEGMENT_POINTS))
+
+
 def stream_windows(
     t: np.ndarray, max_gap: float, seg_start: int, done: int, n1: int, n2: int, final: bool
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int, int]:
@@ -342,41 +502,26 @@ def stream_windows(
     """
     n = t.shape[0]
     size = n1 + n2 + 1
-    targets = np.empty(n, dtype=np.int64)
-    lo = np.empty(n, dtype=np.int64)
-    hi = np.empty(n, dtype=np.int64)
-    count = 0
-    n_segments = 0
-    n_short = 0
-    for r in range(1, n + 1):
-        if r < n and not t[r] - t[r - 1] > max_gap:
-            continue
-        first = max(done, seg_start)
-        if r < n or final:  # segment [seg_start, r) is closed
-            for k in range(first, r):
-                targets[count] = k
-                if r - seg_start < size:
-                    lo[count] = seg_start
-                    hi[count] = r
-                else:
-                    lo[count] = min(max(k - n1, seg_start), r - size)
-                    hi[count] = lo[count] + size
-                count += 1
-            n_segments += 1
-            if r - seg_start < MIN_SEGMENT_POINTS:
-                n_short += 1
-            done = r
-            seg_start = r
-        else:  # the open segment [seg_start, n)
-            done = first
-            if n - seg_start >= size:
-                for k in range(first, n - n2):
-                    targets[count] = k
-                    lo[count] = max(k - n1, seg_start)
-                    hi[count] = lo[count] + size
-                    count += 1
-                    done = k + 1
-    return targets[:count], lo[:count], hi[:count], done, seg_start, n_segments, n_short
+    cuts = np.flatnonzero(np.diff(t) > max_gap) + 1
+    starts = np.r_[seg_start, cuts].astype(np.int64)
+    ends = np.r_[cuts, n].astype(np.int64)
+    closed = starts.size if final and n > 0 else starts.size - 1
+    open_start = n if closed == starts.size else int(starts[-1])
+    n_short = int(np.count_nonzero(ends[:closed] - starts[:closed] < MIN_SEGMENT_POINTS))
+
+    # Rows of closed segments: the batch rule.
+    rows = np.arange(done, open_start, dtype=np.int64)
+    lo, hi = window_bounds(rows, *_segment_of_rows(starts, ends, rows), n1, n2)
+    new_done = max(done, open_start)
+    # Rows of the open segment whose window can no longer shift.
+    if open_start < n and n - open_start >= size and new_done < n - n2:
+        rows_open = np.arange(new_done, n - n2, dtype=np.int64)
+        lo_open = np.maximum(rows_open - n1, open_start)
+        rows = np.r_[rows, rows_open]
+        lo = np.r_[lo, lo_open]
+        hi = np.r_[hi, lo_open + size]
+        new_done = n - n2
+    return rows, lo, hi, new_done, open_start, int(closed), n_short
 
 
 def _median_positive_step(t: np.ndarray) -> float:
@@ -487,21 +632,29 @@ def _sort_order(t: np.ndarray, group: np.ndarray | None) -> np.ndarray | None:
 
 @dataclass
 class _Sorted:
-    """Valid points in (group, time) order with their windows."""
+    """Valid points in (group, time) order, cut into segments."""
 
     rows: np.ndarray | None  # (m,) original row of each sorted point; None: identity, m = n
     t: np.ndarray  # (m,)
-    xyz: np.ndarray  # (m, 3) C-contiguous
-    lo: np.ndarray  # (m,) window rows [lo, hi)
-    hi: np.ndarray
-    n_segments: int
-    n_short_segments: int
+    z: np.ndarray  # (3, m) X, Y, Z rows, C-contiguous
+    starts: np.ndarray  # (segments,) first row of each segment
+    ends: np.ndarray  # (segments,) row after its last
     max_gap_by_group: dict[int, float | None]
+
+    @property
+    def n_segments(self) -> int:
+        return int(self.starts.size)
+
+    @property
+    def n_short_segments(self) -> int:
+        return int(np.count_nonzero(self.ends - self.starts < MIN_SEGMENT_POINTS))
 
 
 def _prepare(xyz: np.ndarray, t: np.ndarray, group: np.ndarray | None, p: _Params) -> _Sorted:
-    """Drop points without a finite time or position, sort, resolve max_gap, cut windows."""
-    valid = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
+    """Drop points without a finite time or position, sort, resolve max_gap, cut segments."""
+    valid = np.isfinite(t)
+    for axis in range(3):
+        valid &= np.isfinite(xyz[:, axis])
     rows: np.ndarray | None = None if valid.all() else np.flatnonzero(valid)
     ts = t if rows is None else t[rows]
     gs = None if group is None else (group if rows is None else group[rows])
@@ -510,7 +663,9 @@ def _prepare(xyz: np.ndarray, t: np.ndarray, group: np.ndarray | None, p: _Param
         rows = order if rows is None else rows[order]
         ts = ts[order]
         gs = None if gs is None else gs[order]
-    xyz_s = np.ascontiguousarray(xyz if rows is None else xyz[rows])
+    z = np.empty((3, ts.size))
+    for axis in range(3):
+        z[axis] = xyz[:, axis] if rows is None else xyz[rows, axis]
 
     if ts.size == 0:
         g_bounds = np.zeros(1, dtype=np.int64)
@@ -526,14 +681,13 @@ def _prepare(xyz: np.ndarray, t: np.ndarray, group: np.ndarray | None, p: _Param
         value = p.max_gap if p.max_gap is not None else 5.0 * _median_positive_step(ts[start:end])
         gaps[g] = value if math.isfinite(value) else math.inf  # no positive step: one segment
         gap_by_group[gid] = value if math.isfinite(value) else None
-    lo, hi, n_segments, n_short = segment_windows(ts, g_bounds, gaps, p.n1, p.n2)
-    return _Sorted(rows, ts, xyz_s, lo, hi, int(n_segments), int(n_short), gap_by_group)
+    starts, ends = cut_segments(ts, g_bounds, gaps)
+    return _Sorted(rows, ts, z, starts, ends, gap_by_group)
 
 
-def _unit_differences(s: _Sorted) -> tuple[np.ndarray, np.ndarray]:
+def _unit_differences(s: _Sorted, p: _Params) -> tuple[np.ndarray, np.ndarray]:
     """dz (m, 3) and sigma_dz (m,) of eqs. 15-16 with unit sigma; NaN where untested."""
-    targets = np.arange(s.t.size, dtype=np.int64)
-    return window_differences(s.t, s.xyz, np.empty(0), targets, s.lo, s.hi)
+    return segment_differences(s.t, s.z, s.starts, s.ends, p.n1, p.n2)
 
 
 def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray) -> tuple[np.ndarray, str]:
@@ -564,7 +718,6 @@ def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray) -> tuple[np.n
     return sigma, source
 
 
-@njit(cache=True)
 def scores_from_differences(
     dz_unit: np.ndarray, sigma_dz_unit: np.ndarray, sigma: np.ndarray
 ) -> np.ndarray:
@@ -574,15 +727,10 @@ def scores_from_differences(
     the a_i do not depend on a common sigma, so eq. 17 = dz / (sigma * sigma_dz(unit)).
     NaN (untested) where sigma_dz_unit is NaN.
     """
-    n = dz_unit.shape[0]
-    score = np.full(n, np.nan)
-    for k in range(n):
-        if not np.isnan(sigma_dz_unit[k]):
-            best = 0.0
-            for j in range(dz_unit.shape[1]):
-                z = standardised_difference(dz_unit[k, j], sigma[j] * sigma_dz_unit[k])
-                best = max(best, abs(z))
-            score[k] = best
+    score = np.zeros(sigma_dz_unit.shape[0])
+    for j, sigma_j in enumerate(np.asarray(sigma, dtype=np.float64)):
+        np.maximum(score, np.abs(standardised_difference(dz_unit[:, j], sigma_j * sigma_dz_unit)),
+                   out=score)
     return score
 
 
@@ -633,7 +781,7 @@ def detect_temporal(
     if n and not np.isfinite(t).any():
         raise MissingDimensionError("gps_time is all NaN: the temporal detector cannot run")
     s = _prepare(xyz, t, group, p)
-    dz, sdz = _unit_differences(s)
+    dz, sdz = _unit_differences(s, p)
     if p.sigma is None:
         sigma_axes, source = estimate_sigma(dz, sdz)
     else:
@@ -835,7 +983,7 @@ class TemporalStream:
                 if gap is not None:
                     self._tail(gid).max_gap = gap
         if self._sigma is None:
-            dz, sdz = _unit_differences(s)
+            dz, sdz = _unit_differences(s, self._p)
             self._sigma, self._sigma_source = estimate_sigma(dz, sdz)
         self._resolved = True
         return self._process(xyz, t, group, index, final)

@@ -16,8 +16,9 @@ Points must be distinct in XY (the ground filter keeps the lowest point per XY p
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 from scipy.spatial import Delaunay
+
+from algorithms.jit import njit
 
 try:
     import startinpy as _startinpy

@@ -8,16 +8,16 @@ from pathlib import Path
 import numba
 
 import algorithms
-from algorithms import source_digest
+from algorithms import jit, source_digest
 
 
 def test_kernels_are_cached_in_the_folder_of_the_current_sources():
-    assert algorithms.NUMBA_CACHE_DIR is not None
-    assert algorithms.NUMBA_CACHE_DIR.endswith(f"numba-{source_digest()}")
-    assert numba.config.CACHE_DIR == algorithms.NUMBA_CACHE_DIR
+    assert jit.NUMBA_CACHE_DIR is not None
+    assert jit.NUMBA_CACHE_DIR.endswith(f"numba-{source_digest()}")
+    assert numba.config.CACHE_DIR == jit.NUMBA_CACHE_DIR
     from algorithms.quadric import _fit_one  # a kernel that inlines others
 
-    assert Path(_fit_one._cache._cache_path).is_relative_to(algorithms.NUMBA_CACHE_DIR)
+    assert Path(_fit_one._cache._cache_path).is_relative_to(jit.NUMBA_CACHE_DIR)
 
 
 def test_an_edit_to_any_module_changes_the_folder(tmp_path):

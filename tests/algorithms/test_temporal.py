@@ -1,6 +1,6 @@
 """Tests of the temporal detector (paper's algorithm (a), eqs. 1-17).
 
-The fast numba kernels are compared with ``slow_standardised_difference``, a per-point loop that
+The fast kernels are compared with ``slow_standardised_difference``, a per-point loop that
 writes eqs. 11, 14, 15, 16 and 17 literally with an explicit 3x3 matrix and ``np.linalg.inv``.
 """
 
@@ -13,10 +13,13 @@ import laspy
 import numpy as np
 import pytest
 
+from algorithms import temporal
 from algorithms.stats import normal_critical_value
 from algorithms.temporal import (
     TemporalStream,
+    cut_segments,
     detect_temporal,
+    segment_differences,
     segment_windows,
     window_bounds,
     window_differences,
@@ -134,7 +137,7 @@ def noisy_line(n: int, seed: int, sigma=(0.01, 0.01, 0.01), step=1e-3):
 @pytest.mark.parametrize(("n1", "n2"), [(5, 5), (2, 7), (1, 2), (10, 3)])
 def test_kernel_matches_slow_reference_irregular_times_varying_sigma(n1, n2):
     rng = np.random.default_rng(10 + n1 + 7 * n2)
-    n = 60
+    n = 300  # long enough for runs of sliced windows as well as gathered ones
     t = np.cumsum(rng.uniform(0.2, 1.5, n))  # irregular steps
     z = np.sin(t / 3.0) * 5.0 + rng.normal(0.0, 0.05, n)
     sigma = rng.uniform(0.01, 0.2, n)  # varying per-point sigma
@@ -179,6 +182,46 @@ def test_detector_matches_slow_reference_with_groups_and_gaps():
     np.testing.assert_array_equal(np.isnan(res.score), np.isnan(slow))
     np.testing.assert_allclose(res.score, slow, rtol=1e-9)
     assert np.array_equal(res.flagged, slow > normal_critical_value(0.001))
+
+
+def segmented_series(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """t (n,), xyz (n, 3) and group bounds of two groups cut by gaps into segments of 1 to 400
+    points (shorter than 4, shorter than a window, and long)."""
+    rng = np.random.default_rng(seed)
+    lengths = rng.choice([1, 3, 5, 9, 40, 400], 30)
+    steps = np.concatenate([np.r_[50.0, rng.uniform(0.2, 1.5, m - 1)] for m in lengths])
+    t = np.cumsum(steps)
+    xyz = trajectory(t / 50.0) + rng.normal(0.0, 0.01, (t.size, 3))
+    return t, xyz, np.array([0, t.size // 2, t.size])
+
+
+def test_sliced_and_gathered_windows_give_identical_bits():
+    t, xyz, bounds = segmented_series(3)
+    n = t.size
+    lo, hi, _, _ = segment_windows(t, bounds, np.array([10.0, 10.0]), 5, 5)
+    starts, ends = cut_segments(t, bounds, np.array([10.0, 10.0]))
+    sliced = segment_differences(t, np.ascontiguousarray(xyz.T), starts, ends, 5, 5)
+    perm = np.random.default_rng(0).permutation(n)  # no consecutive targets: all gathered
+    dz, sdz = window_differences(t, xyz, np.empty(0), perm, lo[perm], hi[perm])
+    gathered = np.empty_like(dz), np.empty_like(sdz)
+    gathered[0][perm], gathered[1][perm] = dz, sdz
+    assert np.isfinite(sliced[1]).sum() > n // 2
+    np.testing.assert_array_equal(sliced[0], gathered[0])
+    np.testing.assert_array_equal(sliced[1], gathered[1])
+
+
+def test_results_do_not_depend_on_blocks_or_threads(monkeypatch):
+    t, xyz, bounds = segmented_series(4)
+    starts, ends = cut_segments(t, bounds, np.array([10.0, 10.0]))
+    z = np.ascontiguousarray(xyz.T)
+    reference = segment_differences(t, z, starts, ends, 4, 6)
+    monkeypatch.setattr(temporal, "_BLOCK", 37)
+    monkeypatch.setattr(temporal, "_PARALLEL_POINTS", 0)
+    for threads in ("1", "2", "3"):
+        monkeypatch.setenv("NUMBA_NUM_THREADS", threads)
+        dz, sdz = segment_differences(t, z, starts, ends, 4, 6)
+        np.testing.assert_array_equal(dz, reference[0])
+        np.testing.assert_array_equal(sdz, reference[1])
 
 
 # --------------------------------------------------------------------------------------------
