@@ -52,7 +52,8 @@ def mad_sigma(x: np.ndarray) -> float:
     x : array of any shape. Returns NaN when x holds no finite value.
     """
     values = np.asarray(x, dtype=np.float64).ravel()
-    values = values[np.isfinite(values)]
+    values = values[np.isfinite(values)]  # a copy: the medians below may reorder it
     if values.size == 0:
         return float("nan")
-    return float(MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
+    deviation = np.abs(values - np.median(values, overwrite_input=True))
+    return float(MAD_TO_SIGMA * np.median(deviation, overwrite_input=True))

@@ -64,17 +64,17 @@ _MIN_RUN = 64
 
 @dataclass
 class WindowBlock:
-    """b windows of at most w rows, stored by window position (row i of every window at once).
+    """b windows of w rows each as (w, b) arrays: column q holds the q-th window.
 
-    ``t[i]`` (b,) and ``z[i]`` (m, b) are the i-th rows of the b windows; ``weight[i]`` (b,) is
-    1 / sigma^2 of those rows, 0 for padding (a window shorter than w), or ``weight`` is None for
-    unit sigma everywhere. ``t_k``, ``z_k`` and ``variance_k`` (None: 1) belong to the tested
-    points; ``t_first`` and ``t_last`` are each window's first and last time.
+    ``t`` (w, b) times, ``z`` (m, w, b) series, ``weight`` (w, b) 1 / sigma^2 of the rows (0 for
+    padding, when a window is shorter than w) or None for unit sigma everywhere. ``t_k``, ``z_k``
+    (m, b) and ``variance_k`` (None: 1) belong to the tested points; ``t_first`` and ``t_last``
+    are each window's first and last time.
     """
 
-    t: list[np.ndarray]
-    z: list[np.ndarray]
-    weight: list[np.ndarray] | None
+    t: np.ndarray
+    z: np.ndarray
+    weight: np.ndarray | None
     t_k: np.ndarray
     z_k: np.ndarray
     variance_k: np.ndarray | None
@@ -82,11 +82,21 @@ class WindowBlock:
     t_last: np.ndarray
 
 
-def smoother_weights(block: WindowBlock) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+def _sum_rows(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    """Sum over the window rows (``axis``) in row order, the same order in every block (numpy's
+    own reductions may sum pairwise for some shapes, which would change the last bits)."""
+    rows = np.moveaxis(x, axis, 0)
+    total = rows[0].copy()
+    for row in rows[1:]:
+        total += row
+    return total
+
+
+def smoother_weights(block: WindowBlock) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Smoother coefficients a_i(k) of eq. 11 (lambda of eq. 14), by orthogonal polynomials.
 
-    Returns (a, a_0, usable): a[i] (b,) for every window position i (0 for padding), a_0(k) (b,)
-    the tested point's own coefficient, and usable (b,) False where the window holds fewer than
+    Returns (a, a_0, usable): a (w, b) for every window row (0 for padding), a_0(k) (b,) the
+    tested point's own coefficient, and usable (b,) False where the window holds fewer than
     three distinct times or a_0(k) is 1 (the point carries the whole fit).
 
     Eq. 11 with lambda = M^-1 e_1 (eq. 14) is the least-squares quadratic's hat matrix,
@@ -99,47 +109,35 @@ def smoother_weights(block: WindowBlock) -> tuple[list[np.ndarray], np.ndarray, 
     Times enter as delta = (t_{k+i} - t_k) / u with u the window's largest |delta|; the a_i do
     not depend on u nor on a common factor of the weights.
     """
-    inv_unit = 1.0 / np.maximum(block.t_k - block.t_first, block.t_last - block.t_k)
     weight = block.weight
-    b = block.t_k.size
-    scratch = np.empty(b)
 
-    def weighted(i: int, x: np.ndarray) -> np.ndarray:
-        return x if weight is None else np.multiply(weight[i], x, out=scratch)
+    def weighted_sum(x: np.ndarray) -> np.ndarray:
+        return _sum_rows(x if weight is None else weight * x)
 
-    n0 = np.full(b, float(len(block.t))) if weight is None else np.sum(weight, axis=0)
-    q1 = [np.subtract(t_i, block.t_k) for t_i in block.t]  # delta, then q_1 in place
-    s1 = np.zeros(b)
-    for i, d in enumerate(q1):
-        d *= inv_unit
-        s1 += weighted(i, d)
-    alpha1 = s1 / n0
-    n1, cubes = np.zeros(b), np.zeros(b)
-    for i, q in enumerate(q1):
-        q -= alpha1
-        square = np.multiply(q, q, out=scratch) if weight is None else weighted(i, q * q)
-        n1 += square
-        square *= q
-        cubes += square
-    gamma, beta1 = cubes / n1, n1 / n0  # alpha_2 - alpha_1 and beta_1
-    q2, n2 = [], np.zeros(b)
-    for i, q in enumerate(q1):
-        r = np.subtract(q, gamma)
-        r *= q
-        r -= beta1
-        q2.append(r)
-        n2 += weighted(i, r * r)
+    inv_unit = 1.0 / np.maximum(block.t_k - block.t_first, block.t_last - block.t_k)
+    q1 = np.subtract(block.t, block.t_k, out=np.empty(block.t.shape))  # delta, then q_1
+    q1 *= inv_unit
+    n0 = np.full(block.t_k.size, float(q1.shape[0])) if weight is None else _sum_rows(weight)
+    alpha1 = weighted_sum(q1) / n0
+    q1 -= alpha1
+    power = q1 * q1
+    n1 = weighted_sum(power)
+    power *= q1
+    gamma, beta1 = weighted_sum(power) / n1, n1 / n0  # alpha_2 - alpha_1 and beta_1
+    q2 = np.subtract(q1, gamma, out=power)
+    q2 *= q1
+    q2 -= beta1
+    n2 = weighted_sum(q2 * q2)
     q1_k = -alpha1  # delta_k = 0
     q2_k = (q1_k - gamma) * q1_k - beta1
     c1, c2 = q1_k / n1, q2_k / n2
     a = q1  # w_i (1 / N_0 + c_1 q_1(i) + c_2 q_2(i)), in place of q_1
-    for i, (a_i, r) in enumerate(zip(a, q2, strict=True)):
-        a_i *= c1
-        a_i += 1.0 / n0
-        r *= c2
-        a_i += r
-        if weight is not None:
-            a_i *= weight[i]
+    a *= c1
+    a += 1.0 / n0
+    q2 *= c2
+    a += q2
+    if weight is not None:
+        a *= weight
     a_0 = 1.0 / n0 + c1 * q1_k + c2 * q2_k
     if block.variance_k is not None:
         a_0 /= block.variance_k
@@ -148,21 +146,18 @@ def smoother_weights(block: WindowBlock) -> tuple[list[np.ndarray], np.ndarray, 
     return a, a_0, usable
 
 
-def predict_from_window(block: WindowBlock, a: list[np.ndarray], a_0: np.ndarray) -> np.ndarray:
+def predict_from_window(block: WindowBlock, a: np.ndarray, a_0: np.ndarray) -> np.ndarray:
     """Eq. 15 relative to the tested point: z_p(k) - z(k), (m, b).
 
     The neighbours' a_i sum to 1 - a_0(k), so eq. 15 is an affine combination and subtracting
     the local reference z(k) first changes nothing but the rounding (coordinates near 5e6 m).
     The tested point's own row adds a_0 (z(k) - z(k)) = 0, so it needs no exclusion.
     """
-    acc = np.zeros_like(block.z_k)
-    term = np.empty_like(block.z_k)
-    for a_i, z_i in zip(a, block.z, strict=True):
-        np.subtract(z_i, block.z_k, out=term)
-        term *= a_i
-        acc += term
-    acc /= 1.0 - a_0
-    return acc
+    term = np.subtract(block.z, block.z_k[:, None, :], out=np.empty(block.z.shape))
+    term *= a
+    prediction = _sum_rows(term, axis=1)
+    prediction /= 1.0 - a_0
+    return prediction
 
 
 def difference_variance(block: WindowBlock, a_0: np.ndarray) -> np.ndarray:
@@ -208,19 +203,27 @@ def _block_differences(block: WindowBlock) -> tuple[np.ndarray, np.ndarray]:
 def _sliced_block(
     t: np.ndarray, z: np.ndarray, sigma: np.ndarray, first: int, stop: int, centre: int, w: int
 ) -> WindowBlock:
-    """Windows of rows k in [first, stop), each rows k - centre to k - centre + w - 1 (views)."""
-    rows = [slice(first - centre + i, stop - centre + i) for i in range(w)]
+    """Windows of rows k in [first, stop), each rows k - centre to k - centre + w - 1 (views).
+
+    t (n,), z (m, n), sigma (n,) or (0,) for unit sigma.
+    """
+    rows = slice(first - centre, stop - centre + w - 1)
+
+    def windows(x: np.ndarray) -> np.ndarray:  # (..., w, b) view: [..., i, q] = x[..., row q + i]
+        return np.swapaxes(np.lib.stride_tricks.sliding_window_view(x[..., rows], w, axis=-1),
+                           -1, -2)
+
     unit = sigma.size == 0
     variance = None if unit else sigma * sigma
     return WindowBlock(
-        t=[t[r] for r in rows],
-        z=[z[:, r] for r in rows],
-        weight=None if unit else [1.0 / variance[r] for r in rows],
+        t=windows(t),
+        z=windows(z),
+        weight=None if unit else 1.0 / windows(variance),
         t_k=t[first:stop],
         z_k=z[:, first:stop],
         variance_k=None if unit else variance[first:stop],
-        t_first=t[rows[0]],
-        t_last=t[rows[-1]],
+        t_first=t[first - centre : stop - centre],
+        t_last=t[first - centre + w - 1 : stop - centre + w - 1],
     )
 
 
@@ -232,20 +235,20 @@ def _gathered_block(
 
     t (n,), z (m, n), sigma (n,) or (0,) for unit sigma.
     """
+    position = lo + np.arange(w)[:, None]  # (w, b)
     padded = bool(np.any(hi - lo < w))
-    rows = [np.minimum(lo + i, hi - 1) if padded else lo + i for i in range(w)]
+    rows = np.minimum(position, hi - 1) if padded else position
     weight = None
     if sigma.size == 0:
         variance_k = None
         if padded:
-            weight = [(lo + i < hi).astype(np.float64) for i in range(w)]
+            weight = (position < hi).astype(np.float64)
     else:
-        inv_variance = 1.0 / (sigma * sigma)
-        weight = [np.where(lo + i < hi, inv_variance[r], 0.0) for i, r in enumerate(rows)]
+        weight = np.where(position < hi, 1.0 / (sigma[rows] * sigma[rows]), 0.0)
         variance_k = sigma[k] * sigma[k]
     return WindowBlock(
-        t=[t[r] for r in rows], z=[z[:, r] for r in rows], weight=weight, t_k=t[k],
-        z_k=z[:, k], variance_k=variance_k, t_first=t[lo], t_last=t[hi - 1],
+        t=t[rows], z=z[:, rows], weight=weight, t_k=t[k], z_k=z[:, k], variance_k=variance_k,
+        t_first=t[lo], t_last=t[hi - 1],
     )
 
 
@@ -528,7 +531,7 @@ def _median_positive_step(t: np.ndarray) -> float:
     """Median of the positive steps of a sorted time series; NaN if it has none."""
     dt = np.diff(t)
     dt = dt[dt > 0]
-    return float(np.median(dt)) if dt.size else math.nan
+    return float(np.median(dt, overwrite_input=True)) if dt.size else math.nan
 
 
 # --------------------------------------------------------------------------------------------

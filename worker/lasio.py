@@ -89,7 +89,7 @@ class Cloud:
         Local origin, a point of the file's integer grid near the centre of the bounds.
     gps_time : (n,) float64 or None
         GPS time in seconds; None for point formats without it.
-    point_source_id, classification, return_number, number_of_returns : (n,) integer arrays
+    point_source_id, classification : (n,) integer arrays
     intensity : (n,) uint16 or None
         Pulse return strength (the ``snow`` detector uses it); None when not read.
     trajectory : (m, 4) float64 or None
@@ -103,8 +103,6 @@ class Cloud:
     gps_time: np.ndarray | None
     point_source_id: np.ndarray
     classification: np.ndarray
-    return_number: np.ndarray
-    number_of_returns: np.ndarray
     intensity: np.ndarray | None = None
     trajectory: np.ndarray | None = None
 
@@ -119,8 +117,6 @@ class Cloud:
             gps_time=None if self.gps_time is None else self.gps_time[index],
             point_source_id=self.point_source_id[index],
             classification=self.classification[index],
-            return_number=self.return_number[index],
-            number_of_returns=self.number_of_returns[index],
             intensity=None if self.intensity is None else self.intensity[index],
             trajectory=self.trajectory,
         )
@@ -401,8 +397,11 @@ def local_xyz(
     if out is None:
         out = np.empty((len(chunk), 3), dtype=np.float64)
     for axis, dim in enumerate("XYZ"):
-        ints = np.asarray(chunk.array[dim], dtype=np.int64) - grid[axis]
-        out[:, axis] = ints * scales[axis]
+        # X - grid is exact in float64 (|X - grid| < 2^33), so this is (X - grid) * scale with
+        # one rounding, as with integer arithmetic, and without temporaries.
+        column = out[:, axis]
+        np.subtract(chunk.array[dim], float(grid[axis]), out=column)
+        column *= scales[axis]
     return out
 
 
@@ -429,8 +428,6 @@ def read_cloud(
     gps = np.empty(n, dtype=np.float64) if "gps_time" in dims else None
     psid = np.empty(n, dtype=np.uint16)
     cls = np.empty(n, dtype=np.uint8)
-    rn = np.empty(n, dtype=np.uint8)
-    nr = np.empty(n, dtype=np.uint8)
     intensity = np.empty(n, dtype=np.uint16)
     start = 0
     lo, hi = progress_span
@@ -441,13 +438,11 @@ def read_cloud(
             gps[start:stop] = chunk.array["gps_time"]
         psid[start:stop] = chunk.array["point_source_id"]
         cls[start:stop] = np.asarray(chunk.classification)
-        rn[start:stop] = np.asarray(chunk.return_number)
-        nr[start:stop] = np.asarray(chunk.number_of_returns)
         intensity[start:stop] = chunk.array["intensity"]
         start = stop
         if progress is not None:
             progress(lo + (hi - lo) * stop / max(n, 1), f"reading {stop:,} of {n:,} points")
-    return Cloud(xyz, origin, gps, psid, cls, rn, nr, intensity)
+    return Cloud(xyz, origin, gps, psid, cls, intensity)
 
 
 # --------------------------------------------------------------------------- writing
@@ -653,9 +648,12 @@ def _write_evlrs(writer: laspy.LasWriter, header: laspy.LasHeader) -> None:
 
 def _copy_record_bytes(src: np.ndarray, dst: np.ndarray) -> None:
     """Copy every original byte of each record; the new dimensions are appended after them."""
-    n, width = len(src), src.dtype.itemsize
-    src_bytes = np.ascontiguousarray(src).view(np.uint8).reshape(n, width)
-    dst.view(np.uint8).reshape(n, dst.dtype.itemsize)[:, :width] = src_bytes
+    width = src.dtype.itemsize
+    # One opaque field over the first ``width`` bytes: numpy copies it record by record with
+    # memcpy, about 4x faster than a (n, width) uint8 copy.
+    head = np.dtype({"names": ["head"], "formats": [f"V{width}"],
+                     "itemsize": dst.dtype.itemsize})
+    dst.view(head)["head"] = np.ascontiguousarray(src).view(f"V{width}")
 
 
 def _is_compressed(header: laspy.LasHeader) -> bool:

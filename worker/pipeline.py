@@ -233,7 +233,7 @@ def run_pipeline(
         spec = get_detector(stage.detector)
         if progress is not None:
             progress(lo + i * step, f"stage {i + 1}/{len(stages)}: {spec.name}")
-        index = np.flatnonzero(flags == 0)
+        index = np.flatnonzero(flags == 0) if flags.any() else np.arange(n)
         if spec.kind == "outlier":
             scores[spec.name] = np.full(n, np.nan, dtype=np.float32)
         started = time.perf_counter()
@@ -309,8 +309,12 @@ def _outlier_stage(
     score_out: np.ndarray,
 ) -> dict[str, Any]:
     flagged = np.asarray(result.flagged, dtype=bool)
-    score_out[index] = result.score
-    flags[index[flagged]] |= np.uint8(bit or 0)
+    if index.size == flags.size:  # every point tested (index is 0..n-1): no gathers
+        score_out[:] = result.score
+        flags[flagged] |= np.uint8(bit or 0)
+    else:
+        score_out[index] = result.score
+        flags[index[flagged]] |= np.uint8(bit or 0)
     return {
         "info": result.info,
         "points_tested": int(np.count_nonzero(result.tested)),

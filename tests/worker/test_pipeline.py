@@ -26,8 +26,7 @@ def _cloud(xyz: np.ndarray, t: np.ndarray | None, cls: np.ndarray | None = None)
     zeros = np.zeros(n, np.uint8)
     return lasio.Cloud(
         xyz=xyz, origin=np.zeros(3), gps_time=t, point_source_id=np.ones(n, np.uint16),
-        classification=zeros.copy() if cls is None else cls, return_number=zeros + 1,
-        number_of_returns=zeros + 1,
+        classification=zeros.copy() if cls is None else cls,
     )
 
 

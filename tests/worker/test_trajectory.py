@@ -68,8 +68,8 @@ def test_transient_with_trajectory_is_clusters_or_free_space():
     traj_local = sim.trajectory - np.r_[0.0, shift]
     n = len(sim.xyz)
     zeros = np.zeros(n, np.uint8)
-    cloud = Cloud(sim.xyz - shift, shift, sim.gps_time, sim.point_source_id, zeros, zeros + 1,
-                  zeros + 1, trajectory=traj_local)
+    cloud = Cloud(sim.xyz - shift, shift, sim.gps_time, sim.point_source_id, zeros,
+                  trajectory=traj_local)
     params = TransientParams()
     result = get_detector("transient").run(cloud, params)
 
@@ -95,8 +95,8 @@ def test_points_outside_the_trajectory_time_are_left_out():
     n = len(sim.xyz)
     zeros = np.zeros(n, np.uint8)
     half = sim.trajectory[: len(sim.trajectory) // 2]
-    cloud = Cloud(sim.xyz, np.zeros(3), sim.gps_time, sim.point_source_id, zeros, zeros + 1,
-                  zeros + 1, trajectory=half)
+    cloud = Cloud(sim.xyz, np.zeros(3), sim.gps_time, sim.point_source_id, zeros,
+                  trajectory=half)
     info = get_detector("transient").run(cloud, TransientParams()).info["free_space"]
     inside = (sim.gps_time >= half[0, 0]) & (sim.gps_time <= half[-1, 0])
     assert info["points_covered"] == int(inside.sum()) and info["points_uncovered"] > 0
