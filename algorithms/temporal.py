@@ -531,7 +531,11 @@ def _median_positive_step(t: np.ndarray) -> float:
     """Median of the positive steps of a sorted time series; NaN if it has none."""
     dt = np.diff(t)
     dt = dt[dt > 0]
-    return float(np.median(dt, overwrite_input=True)) if dt.size else math.nan
+    if dt.size == 0:
+        return math.nan
+    middle = (dt.size - 1) // 2  # np.median's two middle values, without its NaN pass
+    dt.partition([middle, dt.size // 2])
+    return float((dt[middle] + dt[dt.size // 2]) / 2.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -708,12 +712,13 @@ def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray) -> tuple[np.n
     tested = np.flatnonzero(~np.isnan(sigma_dz_unit))
     if tested.size > SIGMA_SAMPLE_POINTS:
         tested = tested[:: -(-tested.size // SIGMA_SAMPLE_POINTS)]
-    r = dz_unit[tested] / sigma_dz_unit[tested, None]
-    sigma = np.array([mad_sigma(r[:, j]) for j in range(3)])
+    scale = sigma_dz_unit[tested]
+    r = [dz_unit[:, j][tested] / scale for j in range(3)]  # column by column: no strided copies
+    sigma = np.array([mad_sigma(r_j) for r_j in r])
     source = "mad"
     for j in range(3):
         if sigma[j] == 0.0:
-            finite = r[np.isfinite(r[:, j]), j]
+            finite = r[j][np.isfinite(r[j])]
             spread = float(np.sqrt(np.mean(finite**2)))
             # All residuals zero: any positive sigma gives score 0.
             sigma[j] = spread if spread > 0 else 1.0
@@ -882,10 +887,11 @@ class TemporalStream:
 
     With numeric ``sigma`` and ``max_gap`` the scores equal ``detect_temporal`` on the
     concatenated input exactly. With ``'auto'`` either is resolved from the first
-    ``warmup_points`` points (at least the first chunk; all of them if the stream is shorter),
-    which are held back until then: sigma as in ``detect_temporal`` on those points, max_gap
-    per group from that group's points among them (a group first seen later: from its first
-    rows that hold a positive time step). The resolved values are in ``info``.
+    ``warmup_points`` points (all of them if the stream is shorter), which are held back
+    until then (with the rest of the chunk that completes them): sigma as in
+    ``detect_temporal`` on those points, max_gap per group from that group's points among them
+    (a group first seen later: from its first rows that hold a positive time step). The
+    resolved values are in ``info``.
     """
 
     def __init__(
@@ -979,7 +985,8 @@ class TemporalStream:
                 [c[2] if c[2] is not None else np.zeros(c[1].size, np.int64) for c in chunks]
             )
         index = np.concatenate([c[3] for c in chunks])
-        s = _prepare(xyz, t, group, self._p)
+        head = slice(0, self._warmup_points)  # resolve from these; the chunk may hold more
+        s = _prepare(xyz[head], t[head], None if group is None else group[head], self._p)
         if self._p.max_gap is None:
             self._gap_by_group.update(s.max_gap_by_group)
             for gid, gap in s.max_gap_by_group.items():
