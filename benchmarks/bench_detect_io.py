@@ -4,16 +4,17 @@ Target (issue 2): the whole command within 3x of just reading and writing the fi
 on a 1.1 million point mobile cloud. The cloud is synthetic: two profile scanners interleaved in
 time order, coordinates near 5e6 m, GPS times near 5e5 s, LAS 1.4 point format 6.
 
-Measured, each ``--repeat`` times (best wall time kept; CPU time beside it because the machine is
-shared):
+Two comparisons, like for like:
 
-- ``laspy``: ``laspy.read(IN)`` then ``.write(OUT)`` in this process (the baseline);
-- ``detect (streaming)`` / ``detect (in memory)``: ``worker.pipeline.process_file`` in this
-  process (temporal only; files above ``STREAM_MIN_POINTS`` in time order stream by default);
-- ``lidar-outliers detect``: the installed command in a subprocess (adds interpreter start-up
-  and imports), with its peak RSS.
+- commands: ``lidar-outliers detect IN -o OUT --detector temporal`` against the smallest laspy
+  command, ``python -c "laspy.read(IN).write(OUT)"``, each a fresh process (interpreter start,
+  imports, I/O, exit), run alternately ``--repeat`` times; min and median wall seconds;
+- in this process: ``worker.pipeline.process_file`` (in memory, and streaming) against
+  ``laspy.read(IN).write(OUT)``; best of ``--repeat``, CPU seconds beside.
 
-    .venv/bin/python benchmarks/bench_detect_io.py [--points 1100000] [--laz] [--repeat 3]
+The machine is shared and its speed drifts by 10-20 % within minutes, hence the alternation.
+
+    .venv/bin/python benchmarks/bench_detect_io.py [--points 1100000] [--laz] [--repeat 10]
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -70,11 +72,28 @@ def best(fn, repeat: int) -> tuple[float, float]:
     return min(runs)
 
 
+def run_command(command: list[str]) -> float:
+    w0 = time.perf_counter()
+    subprocess.run(command, check=True, cwd=ROOT)
+    return time.perf_counter() - w0
+
+
+def compare_commands(ours: list[str], laspy_cmd: list[str], repeat: int) -> dict[str, list[float]]:
+    """Wall seconds of both commands, run alternately (one warm-up run each first)."""
+    run_command(ours)
+    run_command(laspy_cmd)
+    walls: dict[str, list[float]] = {"ours": [], "laspy": []}
+    for _ in range(repeat):
+        walls["ours"].append(run_command(ours))
+        walls["laspy"].append(run_command(laspy_cmd))
+    return walls
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=1_100_000)
     ap.add_argument("--laz", action="store_true", help="LAZ in and out instead of LAS")
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=10)
     args = ap.parse_args()
     suffix = "laz" if args.laz else "las"
     with tempfile.TemporaryDirectory(prefix="bench_detect_io_") as tmp:
@@ -83,7 +102,6 @@ def main() -> None:
         make_cloud(src, args.points)
         n = args.points
         params = {"pipeline": [{"detector": "temporal"}]}
-        # Warm-up: numba kernels load from cache / compile once.
         process_file(src, tmp / f"warm.{suffix}", params)
 
         def laspy_io() -> None:
@@ -98,33 +116,35 @@ def main() -> None:
             assert stats["mode"] == "in memory"
 
         script = Path(sys.executable).with_name("lidar-outliers")
-        command = [str(script)] if script.exists() else [sys.executable, "-m",
-                                                         "lidar_outliers.cli"]
-
-        def cli() -> None:
-            subprocess.run([*command, "detect", str(src), "-o", str(tmp / f"c.{suffix}"), "-q",
-                            "--detector", "temporal", "--stats", str(tmp / "c.json")],
-                           check=True, cwd=ROOT)
-
-        base = best(laspy_io, args.repeat)
-        rows = [("laspy read + write", base)]
-        rows.append(("detect (streaming)", best(streaming, args.repeat)))
-        rows.append(("detect (in memory)", best(in_memory, args.repeat)))
-        c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        w0 = time.perf_counter()
-        cli()
-        w = time.perf_counter() - w0
-        c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        cli_cpu = (c1.ru_utime + c1.ru_stime) - (c0.ru_utime + c0.ru_stime)
-        rows.append(("lidar-outliers detect (subprocess)", (w, cli_cpu)))
+        ours = [str(script)] if script.exists() else [sys.executable, "-m", "lidar_outliers.cli"]
+        ours += ["detect", str(src), "-o", str(tmp / f"c.{suffix}"), "-q",
+                 "--detector", "temporal", "--stats", str(tmp / "c.json")]
+        laspy_cmd = [sys.executable, "-c", "import sys, laspy; "
+                     "laspy.read(sys.argv[1]).write(sys.argv[2])",
+                     str(src), str(tmp / f"lc.{suffix}")]
+        walls = compare_commands(ours, laspy_cmd, args.repeat)
         print(f"{n:,} points, {suffix.upper()} {src.stat().st_size / 1e6:.1f} MB, "
               f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+        print(f"\ncommands, {args.repeat} alternate runs each:")
+        print(f"{'':36} {'min s':>8} {'median s':>9}")
+        for label, key in (("lidar-outliers detect --detector temporal", "ours"),
+                           ("python -c laspy.read(IN).write(OUT)", "laspy")):
+            print(f"{label:42} {min(walls[key]):6.3f} {statistics.median(walls[key]):9.3f}")
+        print(f"ratio: {min(walls['ours']) / min(walls['laspy']):.2f}x (min), "
+              f"{statistics.median(walls['ours']) / statistics.median(walls['laspy']):.2f}x "
+              f"(median); target 3x")
+
+        base = best(laspy_io, args.repeat)
+        rows = [("laspy read + write", base), ("detect (in memory)", best(in_memory, args.repeat)),
+                ("detect (streaming)", best(streaming, args.repeat))]
+        print(f"\nin this process, best of {args.repeat}:")
         print(f"{'':36} {'wall s':>8} {'cpu s':>8} {'Mpts/s':>8} {'x laspy (wall/cpu)':>20}")
         for label, (wall, cpu) in rows:
-            print(f"{label:36} {wall:8.2f} {cpu:8.2f} {n / wall / 1e6:8.2f} "
+            print(f"{label:36} {wall:8.3f} {cpu:8.3f} {n / wall / 1e6:8.2f} "
                   f"{wall / base[0]:9.2f} / {cpu / base[1]:.2f}")
-        print(f"peak RSS of the subprocess: {c1.ru_maxrss / 1024:.0f} MB; "
-              f"this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+        print(f"peak RSS of this process: "
+              f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB; of the "
+              f"commands: {resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024:.0f} MB")
 
 
 if __name__ == "__main__":

@@ -411,11 +411,14 @@ def read_cloud(
     chunk_points: int = DEFAULT_CHUNK_POINTS,
     progress: Progress | None = None,
     progress_span: tuple[float, float] = (0.0, 1.0),
+    records: list[laspy.ScaleAwarePointRecord] | None = None,
 ) -> Cloud:
     """Read a validated LAS/LAZ file into a :class:`Cloud` (chunk by chunk, in file order).
 
     ``progress(fraction, message)`` is called after each chunk, with fractions inside
-    ``progress_span``; an exception it raises propagates unchanged.
+    ``progress_span``; an exception it raises propagates unchanged. ``records``, when given,
+    receives the raw point records too, so that ``write_result`` need not read the file again
+    (they hold the file's point bytes in memory).
     """
     name = Path(path).name
     with _laspy_errors(name), laspy.open(path) as reader:
@@ -439,6 +442,8 @@ def read_cloud(
         psid[start:stop] = chunk.array["point_source_id"]
         cls[start:stop] = np.asarray(chunk.classification)
         intensity[start:stop] = chunk.array["intensity"]
+        if records is not None:
+            records.append(chunk)
         start = stop
         if progress is not None:
             progress(lo + (hi - lo) * stop / max(n, 1), f"reading {stop:,} of {n:,} points")
@@ -606,18 +611,21 @@ def rewrite(
     chunk_points: int = DEFAULT_CHUNK_POINTS,
     progress: Progress | None = None,
     progress_span: tuple[float, float] = (0.0, 1.0),
+    records: list[laspy.ScaleAwarePointRecord] | None = None,
 ) -> None:
     """Copy ``in_path`` to ``out_path`` chunk by chunk, adding ``new_dims`` filled by ``fill``.
 
     ``fill(start, chunk_in, chunk_out)`` receives the index of the chunk's first point in the file,
     the input record and the output record (original dimensions already copied) and sets the new
     dimensions (and, if it wants, the classification). ``laz=None`` keeps the input's compression.
+    ``records``: the file's point records as ``read_cloud`` kept them (else it is read again).
     """
     lo, hi = progress_span
     with ResultWriter(in_path, out_path, new_dims, laz=laz) as writer:
         n = writer.points
         start = 0
-        for chunk in iter_chunks(in_path, chunk_points):
+        chunks = iter_chunks(in_path, chunk_points) if records is None else records
+        for chunk in chunks:
             out = writer.record(chunk)
             fill(start, chunk, out)
             writer.write(out)
@@ -682,11 +690,12 @@ def write_result(
     chunk_points: int = DEFAULT_CHUNK_POINTS,
     progress: Progress | None = None,
     progress_span: tuple[float, float] = (0.0, 1.0),
+    records: list[laspy.ScaleAwarePointRecord] | None = None,
 ) -> None:
     """Write the input's points with ``outlier_flags`` (n,) uint8 and ``<name>_score`` (n,) float32.
 
     ``classification`` (n,) replaces the class of every point when given (``classify`` on);
-    None leaves the classes untouched.
+    None leaves the classes untouched. ``records``: as ``rewrite``.
     """
     def fill(start: int, _chunk: Any, out: laspy.ScaleAwarePointRecord) -> None:
         stop = start + len(out)
@@ -698,7 +707,7 @@ def write_result(
 
     rewrite(
         in_path, out_path, result_dimensions(list(scores)), fill, laz=laz,
-        chunk_points=chunk_points, progress=progress, progress_span=progress_span,
+        chunk_points=chunk_points, progress=progress, progress_span=progress_span, records=records,
     )
 
 

@@ -423,8 +423,12 @@ def process_file(
         if stats is not None:
             stats["seconds"] = {"total": round(time.perf_counter() - t0, 4)}
             return _finish(stats, out_path, compress, stats_path, progress, traj_info)
+    # Up to STREAM_MIN_POINTS the point records stay in memory for the writer (one read and,
+    # for LAZ, one decompression instead of two); larger files are read again.
+    records: list[Any] | None = [] if facts.points <= STREAM_MIN_POINTS else None
     cloud = lasio.read_cloud(
-        in_path, chunk_points=chunk_points, progress=progress, progress_span=(0.0, _READ)
+        in_path, chunk_points=chunk_points, progress=progress, progress_span=(0.0, _READ),
+        records=records,
     )
     if traj is not None:
         cloud = cloud.with_trajectory(traj)
@@ -437,8 +441,9 @@ def process_file(
     lasio.write_result(
         in_path, out_path, flags=result.flags, scores=result.scores,
         classification=result.classification, laz=compress, chunk_points=chunk_points,
-        progress=progress, progress_span=(_DETECT, 1.0),
+        progress=progress, progress_span=(_DETECT, 1.0), records=records,
     )
+    del records
     t_write = time.perf_counter()
     stats = result.statistics
     stats["mode"] = "in memory"
