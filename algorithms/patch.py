@@ -52,6 +52,23 @@ def check_k_alpha(k: int, alpha: float) -> float:
     return float(crit)
 
 
+def distinct_locations(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first point at each distinct location, and each point's location.
+
+    Returns first (u,) row indices (in order of location) and location (n,) with
+    ``xyz[first[location]] == xyz``. Points at one location share their patch: the k-d tree
+    returns the same neighbours for the same query coordinates, so the fit and the point's
+    T_i (eq. 31) are the same numbers (mobile clouds repeat points while the vehicle stands).
+    """
+    order = np.lexsort(xyz.T[::-1])
+    ordered = xyz[order]
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    location = np.empty(order.size, dtype=np.int64)
+    location[order] = np.cumsum(new) - 1
+    return order[new], location
+
+
 def detect_patch(
     xyz: np.ndarray,
     *,
@@ -110,21 +127,26 @@ def detect_patch(
 
     local = pts - pts.min(axis=0)  # exact enough before the per-patch centring
     tree = cKDTree(local)
+    first, location = distinct_locations(local)
+    copies = np.bincount(location)  # points at each distinct location
+    location_score = np.full(first.size, np.nan)
     not_converged = 0
     collinear = 0
     iterations_sum = 0
     batch_points = max(1, min(int(batch_points), BATCH_NEIGHBOURS // k))
-    for batch in spatial_batches(local[:, :2], batch_points, tile_size):
-        _, nbr = tree.query(local[batch], k=k, workers=-1)
+    for batch in spatial_batches(local[first, :2], batch_points, tile_size):
+        _, nbr = tree.query(local[first[batch]], k=k, workers=-1)
         fit = fit_quadrics(
             local, var_sigma, neighbours=nbr, max_iter=FIT_MAX_ITER, tol=FIT_TOL,
             t_first_only=True,
         )
-        score[batch] = np.where(fit.converged, fit.t_stat[:, 0], np.nan)
-        not_converged += int((~fit.converged).sum())
-        collinear += int((~fit.converged & (fit.iterations == 0)).sum())
-        iterations_sum += int(fit.iterations.sum())
+        location_score[batch] = np.where(fit.converged, fit.t_stat[:, 0], np.nan)
+        weight = copies[batch]  # the statistics count points, not distinct locations
+        not_converged += int(weight[~fit.converged].sum())
+        collinear += int(weight[~fit.converged & (fit.iterations == 0)].sum())
+        iterations_sum += int((weight * fit.iterations).sum())
         del nbr, fit
+    score = location_score[location]
     tested = ~np.isnan(score)
     info["points_tested"] = int(tested.sum())
     info["patches_not_converged"] = not_converged  # collinear ones included

@@ -146,3 +146,26 @@ def test_grid_cells_follow_the_cloud():
     for j in range(len(offsets) - 1):
         members = cell[order[offsets[j] : offsets[j + 1]]]
         assert (members == members[0]).all()
+
+
+def test_points_at_one_location_share_their_patch_exactly():
+    # A vehicle standing still repeats points; each location is fitted once. The scores must
+    # equal fitting every point's own patch.
+    from scipy.spatial import cKDTree
+
+    from algorithms.patch import FIT_MAX_ITER, FIT_TOL, distinct_locations
+    from algorithms.quadric import fit_quadrics
+
+    rng = np.random.default_rng(7)
+    base = gentle_surface(rng, n=1500, size=1.0)
+    xyz = np.concatenate([base, base[rng.choice(1500, 400)], base[:50]])  # 450 repeats
+    first, location = distinct_locations(xyz)
+    assert first.size == 1500 and np.array_equal(xyz[first[location]], xyz)
+    res = detect_patch(xyz, k=40, sigma=0.005, alpha=0.001, batch_points=300)
+    local = xyz - xyz.min(axis=0)
+    _, nbr = cKDTree(local).query(local, k=40)
+    fit = fit_quadrics(local, np.full(3, 0.005), neighbours=nbr, max_iter=FIT_MAX_ITER,
+                       tol=FIT_TOL, t_first_only=True)
+    expected = np.where(fit.converged, fit.t_stat[:, 0], np.nan)
+    np.testing.assert_array_equal(res.score, expected)
+    assert res.info["mean_iterations"] == pytest.approx(fit.iterations.mean())
