@@ -24,9 +24,9 @@ from __future__ import annotations
 import math
 import numbers
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -258,8 +258,11 @@ class _Plan:
 
     ``runs`` [(q0, q1, k0)]: outputs q0:q1 are the rows k0, k0 + 1, ... with windows of ``width``
     rows holding the tested point at position ``centre`` (served by slices); only the outputs
-    where ``served`` (p,) is True keep that result. ``gathered`` (q, k, lo, hi): the other
-    outputs q with MIN_SEGMENT_POINTS rows or more, row k predicted from rows lo:hi.
+    where ``served`` (p,) is True keep that result. ``shared`` [(lo, centres)]: windows of
+    ``width`` rows starting at the rows lo (b,), each tested at every position in ``centres``
+    (the rows lo + c, output q = row): segment ends, whose rows share one window. ``gathered``
+    (q, k, lo, hi): the other outputs q with MIN_SEGMENT_POINTS rows or more, row k predicted
+    from rows lo:hi.
     """
 
     centre: int
@@ -267,6 +270,7 @@ class _Plan:
     runs: list[tuple[int, int, int]]
     served: np.ndarray
     gathered: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    shared: list[tuple[np.ndarray, range]] = field(default_factory=list)
 
 
 def _covered(p: int, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
@@ -303,8 +307,9 @@ def _plan_segments(starts: np.ndarray, ends: np.ndarray, n1: int, n2: int) -> _P
     """The plan for every row of contiguous segments (rows starts[i]:ends[i], covering 0:n).
 
     The interior rows of segments of n1 + n2 + 1 rows or more have the window [k - n1, k + n2]
-    and are sliced; their first n1 and last n2 rows (window shifted inside) and the rows of
-    shorter segments (the whole segment) are gathered: the rule of ``window_bounds``.
+    and are sliced; their first n1 rows share the window of the segment's first n1 + n2 + 1
+    rows, their last n2 rows that of its last ones; the rows of shorter segments (the whole
+    segment) are gathered: the rule of ``window_bounds``.
     """
     n = int(ends[-1]) if ends.size else 0
     w = n1 + n2 + 1
@@ -312,19 +317,12 @@ def _plan_segments(starts: np.ndarray, ends: np.ndarray, n1: int, n2: int) -> _P
     long = length >= w
     served = _covered(n, starts[long] + n1, ends[long] - n2)
     runs = [(n1, n - n2, n1)] if n - n2 > n1 else []
-    s, e = starts[long], ends[long]
-    head = (s[:, None] + np.arange(n1)).ravel()
-    tail = (e[:, None] - n2 + np.arange(n2)).ravel()
+    shared = [(starts[long], range(n1)), (ends[long] - w, range(w - n2, w))]
     medium = (length >= MIN_SEGMENT_POINTS) & ~long
     m_len = length[medium]
-    seg_lo, seg_hi = np.repeat(starts[medium], m_len), np.repeat(ends[medium], m_len)
-    inner = np.arange(seg_lo.size) - np.repeat(np.cumsum(m_len) - m_len, m_len)
-    k = np.r_[head, tail, seg_lo + inner]
-    lo = np.r_[np.repeat(s, n1), np.repeat(e - w, n2), seg_lo]
-    hi = np.r_[np.repeat(s + w, n1), np.repeat(e, n2), seg_hi]
-    order = np.argsort(k, kind="stable")
-    k, lo, hi = k[order], lo[order], hi[order]
-    return _Plan(n1, w, runs, served, (k, k, lo, hi))
+    lo, hi = np.repeat(starts[medium], m_len), np.repeat(ends[medium], m_len)
+    k = lo + np.arange(lo.size) - np.repeat(np.cumsum(m_len) - m_len, m_len)
+    return _Plan(n1, w, runs, served, (k, k, lo, hi), shared)
 
 
 def worker_threads() -> int:
@@ -351,11 +349,9 @@ def _differences(
     def sliced(q0: int, q1: int, k0: int) -> None:
         block = _sliced_block(t, z, sigma, k0, k0 + q1 - q0, plan.centre, plan.width)
         d, s = _block_differences(block)
-        keep = plan.served[q0:q1]
-        if keep.all():
-            dz[:, q0:q1], sigma_dz[q0:q1] = d, s
-        else:
-            dz[:, q0:q1][:, keep], sigma_dz[q0:q1][keep] = d[:, keep], s[keep]
+        keep = plan.served[q0:q1]  # the other rows belong to other tasks (other threads)
+        np.copyto(dz[:, q0:q1], d, where=keep)
+        np.copyto(sigma_dz[q0:q1], s, where=keep)
 
     q, k, lo, hi = plan.gathered
     width = int(np.max(hi - lo, initial=0))
@@ -366,7 +362,24 @@ def _differences(
         block = _gathered_block(t, z, sigma, k[a:b], lo[a:b], hi[a:b], width)
         dz[:, q[a:b]], sigma_dz[q[a:b]] = _block_differences(block)
 
-    tasks = [
+    def shared(window_lo: np.ndarray, centres: range) -> None:
+        whole = _gathered_block(t, z, sigma, window_lo, window_lo, window_lo + plan.width,
+                                plan.width)  # gathered once, tested at every centre
+        for c in centres:
+            row = window_lo + c
+            variance_k = None if whole.variance_k is None else sigma[row] * sigma[row]
+            block = replace(whole, t_k=whole.t[c], z_k=whole.z[:, c], variance_k=variance_k)
+            dz[:, row], sigma_dz[row] = _block_differences(block)
+
+    # About _BLOCK windows per task; the shared ones (a window per centre) first, so that the
+    # threads do not end on one long task.
+    tasks: list[tuple[Callable[..., None], tuple]] = [
+        (shared, (window_lo[a : a + per_task], centres))
+        for window_lo, centres in plan.shared
+        for per_task in [max(1, _BLOCK // max(len(centres), 1))]
+        for a in range(0, window_lo.size, per_task)
+    ]
+    tasks += [
         (sliced, (a, min(q1, a + _BLOCK), k0 + a - q0))
         for q0, q1, k0 in plan.runs
         for a in range(q0, q1, _BLOCK)
