@@ -15,6 +15,7 @@ Two comparisons, like for like:
 The machine is shared and its speed drifts by 10-20 % within minutes, hence the alternation.
 
     .venv/bin/python benchmarks/bench_detect_io.py [--points 1100000] [--laz] [--repeat 10]
+    .venv/bin/python benchmarks/bench_detect_io.py --input CLOUD.las   # a file of your own
 """
 
 from __future__ import annotations
@@ -94,13 +95,16 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=1_100_000)
     ap.add_argument("--laz", action="store_true", help="LAZ in and out instead of LAS")
     ap.add_argument("--repeat", type=int, default=10)
+    ap.add_argument("--input", type=Path, help="an existing LAS/LAZ file instead of the synthetic")
     args = ap.parse_args()
-    suffix = "laz" if args.laz else "las"
+    suffix = args.input.suffix.lstrip(".").lower() if args.input else "laz" if args.laz else "las"
     with tempfile.TemporaryDirectory(prefix="bench_detect_io_") as tmp:
         tmp = Path(tmp)
-        src = tmp / f"cloud.{suffix}"
-        make_cloud(src, args.points)
-        n = args.points
+        src = args.input.resolve() if args.input else tmp / f"cloud.{suffix}"
+        if not args.input:
+            make_cloud(src, args.points)
+        with laspy.open(str(src)) as reader:
+            n = int(reader.header.point_count)
         params = {"pipeline": [{"detector": "temporal"}]}
         process_file(src, tmp / f"warm.{suffix}", params)
 
@@ -123,7 +127,7 @@ def main() -> None:
                      "laspy.read(sys.argv[1]).write(sys.argv[2])",
                      str(src), str(tmp / f"lc.{suffix}")]
         walls = compare_commands(ours, laspy_cmd, args.repeat)
-        print(f"{n:,} points, {suffix.upper()} {src.stat().st_size / 1e6:.1f} MB, "
+        print(f"{src.name}: {n:,} points, {suffix.upper()} {src.stat().st_size / 1e6:.1f} MB, "
               f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
         print(f"\ncommands, {args.repeat} alternate runs each:")
         print(f"{'':36} {'min s':>8} {'median s':>9}")
