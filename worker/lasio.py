@@ -48,7 +48,10 @@ _DROPPED_VLR_USERS = frozenset({"laszip encoded", "copc"})
 _VLR_HEADER = 54
 _EVLR_HEADER = 60
 _LASZIP_USER, _LASZIP_RECORD = b"laszip encoded", 22204
-DEFAULT_CHUNK_POINTS = 1_000_000
+#: Points read or written at a time. A chunk's arrays (about 9 MB of records for 250 k points)
+#: stay below glibc's largest mmap threshold (32 MB), so freed chunks are reused from the heap
+#: instead of being mapped and zero-filled again; 1 M point chunks made a command 4 % slower.
+DEFAULT_CHUNK_POINTS = 250_000
 FLAGS_DIMENSION = "outlier_flags"
 
 
