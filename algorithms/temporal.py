@@ -9,14 +9,18 @@ against the two-sided normal critical value. A point's score is the largest |eq.
 Numerical care (GPS times near 5e5 s with steps near 1e-5 s, coordinates near 5e6 m):
 
 - times enter only as delta = t_{k+i} - t_k (exact in float64 for neighbouring times), rescaled by
-  the window's largest |delta| before the delta^4 sums are formed;
+  the window's largest |delta|, and the fit uses polynomials orthogonal over the window instead
+  of inverting the moment matrix of eq. 14 (``smoother_weights``);
 - coordinates enter only as z_{k+i} - z_k (the a_i of the neighbours sum to 1 - a_0, so eq. 15 is
   an affine combination and the reference z_k cancels exactly in exact arithmetic).
 
 Layout: ``smoother_weights`` (eqs. 11, 14), ``predict_from_window`` (eq. 15),
-``difference_variance`` (eq. 16) and ``standardised_difference`` (eq. 17) are the per-window
-kernels; ``window_differences`` runs them over many points; ``detect_temporal`` is the batch
-detector and ``TemporalStream`` the streaming one (identical results for fixed sigma and max_gap).
+``difference_variance`` (eq. 16) and ``standardised_difference`` (eq. 17) are the kernels, each
+vectorised over a block of windows (plain numpy: no compilation, so a short command does not
+pay for numba's start-up); ``window_differences`` (any windows) and ``segment_differences``
+(every row of cut segments) run them block by block on all cores; ``detect_temporal`` is the
+batch detector and ``TemporalStream`` the streaming one (identical results for fixed sigma and
+max_gap).
 """
 
 from __future__ import annotations
@@ -38,8 +42,8 @@ from worker.errors import MissingDimensionError, ParameterError
 #: quadratic of eq. 15 and the point itself is the fourth.
 MIN_SEGMENT_POINTS = 4
 
-#: det(M) / (M_00 M_11 M_22) of the (rescaled) moment matrix of eq. 14 below which the window is
-#: taken as singular (fewer than three distinct times). The ratio lies in [0, 1] (Hadamard).
+#: N_2 / N_0 (the weighted mean square of the second orthogonal polynomial, times scaled to
+#: [-1, 1]) below which the window is taken as singular: fewer than three distinct times.
 _SINGULAR_RATIO = 1e-12
 
 #: 1 - a_0(k) below this: the point itself carries the whole fit, eq. 15 is undefined.
@@ -48,8 +52,8 @@ _MIN_ONE_MINUS_A0 = 1e-10
 #: Tested points above which ``estimate_sigma`` works on an evenly strided subsample.
 SIGMA_SAMPLE_POINTS = 100_000
 
-#: Windows per block in ``window_differences`` (a block's two dozen temporaries of this length
-#: stay near the CPU), and the call size below which it runs on one thread.
+#: Windows per block (a block's temporaries of this length stay near the CPU), and the number
+#: of windows below which ``_differences`` runs on one thread.
 _BLOCK = 16384
 _PARALLEL_POINTS = 2 * _BLOCK
 
