@@ -71,9 +71,9 @@ class WindowBlock:
     """b windows of w rows each as (w, b) arrays: column q holds the q-th window.
 
     ``t`` (w, b) times, ``z`` (m, w, b) series, ``weight`` (w, b) 1 / sigma^2 of the rows (0 for
-    padding, when a window is shorter than w) or None for unit sigma everywhere. ``t_k``, ``z_k``
-    (m, b) and ``variance_k`` (None: 1) belong to the tested points; ``t_first`` and ``t_last``
-    are each window's first and last time.
+    padding, when a window is shorter than w; its rows repeat the window's last row) or None
+    for unit sigma everywhere. ``t_k``, ``z_k`` (m, b) and ``variance_k`` (None: 1) belong to the
+    tested points. ``t[0]`` and ``t[-1]`` are each window's first and last time.
     """
 
     t: np.ndarray
@@ -82,8 +82,6 @@ class WindowBlock:
     t_k: np.ndarray
     z_k: np.ndarray
     variance_k: np.ndarray | None
-    t_first: np.ndarray
-    t_last: np.ndarray
 
 
 def _sum_rows(x: np.ndarray, axis: int = 0) -> np.ndarray:
@@ -118,7 +116,7 @@ def smoother_weights(block: WindowBlock) -> tuple[np.ndarray, np.ndarray, np.nda
     def weighted_sum(x: np.ndarray) -> np.ndarray:
         return _sum_rows(x if weight is None else weight * x)
 
-    inv_unit = 1.0 / np.maximum(block.t_k - block.t_first, block.t_last - block.t_k)
+    inv_unit = 1.0 / np.maximum(block.t_k - block.t[0], block.t[-1] - block.t_k)
     q1 = np.subtract(block.t, block.t_k, out=np.empty(block.t.shape))  # delta, then q_1
     q1 *= inv_unit
     n0 = np.full(block.t_k.size, float(q1.shape[0])) if weight is None else _sum_rows(weight)
@@ -226,8 +224,6 @@ def _sliced_block(
         t_k=t[first:stop],
         z_k=z[:, first:stop],
         variance_k=None if unit else variance[first:stop],
-        t_first=t[first - centre : stop - centre],
-        t_last=t[first - centre + w - 1 : stop - centre + w - 1],
     )
 
 
@@ -252,7 +248,6 @@ def _gathered_block(
         variance_k = sigma[k] * sigma[k]
     return WindowBlock(
         t=t[rows], z=z[:, rows], weight=weight, t_k=t[k], z_k=z[:, k], variance_k=variance_k,
-        t_first=t[lo], t_last=t[hi - 1],
     )
 
 
@@ -320,7 +315,10 @@ def _plan_segments(starts: np.ndarray, ends: np.ndarray, n1: int, n2: int) -> _P
     length = ends - starts
     long = length >= w
     served = _covered(n, starts[long] + n1, ends[long] - n2)
-    runs = [(n1, n - n2, n1)] if n - n2 > n1 else []
+    # One run from the first interior row to the last: the rows between segments are computed
+    # with the wrong window and dropped (served is False there), which is cheaper than cutting.
+    first, stop = (int(starts[long][0]) + n1, int(ends[long][-1]) - n2) if long.any() else (0, 0)
+    runs = [(first, stop, first)] if stop > first else []
     shared = [(starts[long], range(n1)), (ends[long] - w, range(w - n2, w))]
     medium = (length >= MIN_SEGMENT_POINTS) & ~long
     m_len = length[medium]
