@@ -233,7 +233,7 @@ def run_pipeline(
         spec = get_detector(stage.detector)
         if progress is not None:
             progress(lo + i * step, f"stage {i + 1}/{len(stages)}: {spec.name}")
-        index = np.flatnonzero(flags == 0) if flags.any() else np.arange(n)
+        index = np.flatnonzero(flags == 0)
         if spec.kind == "outlier":
             scores[spec.name] = np.full(n, np.nan, dtype=np.float32)
         started = time.perf_counter()
