@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from worker.errors import ParameterError
+from algorithms.errors import ParameterError
 
 
 def check_xyz(xyz: np.ndarray) -> np.ndarray:

@@ -107,9 +107,9 @@ from typing import Any
 
 import numpy as np
 
+from algorithms.errors import ParameterError
 from algorithms.jit import njit
 from algorithms.tin import delaunay, vertex_triangles
-from worker.errors import ParameterError
 
 #: Tolerance growth with the ground surface's grade in step 8 (metres per unit of tan(slope)).
 SURFACE_SLOPE_TOLERANCE = 1.0

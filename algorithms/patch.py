@@ -11,11 +11,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
+from algorithms.errors import ParameterError
 from algorithms.quadric import DOF_LOSS, fit_quadrics, min_patch_size
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
 from algorithms.tiles import spatial_batches
-from worker.errors import ParameterError
 
 #: Patches fitted per batch (for k = 40: 65536 x 40 x 3 float64 = 63 MB of gathered coordinates);
 #: larger k gets proportionally smaller batches, so memory does not grow with k.

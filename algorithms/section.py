@@ -19,13 +19,13 @@ import numba
 import numpy as np
 
 from algorithms.checks import check_xyz
+from algorithms.errors import ParameterError
 from algorithms.jit import njit, prange
 from algorithms.patch import check_sigma
 from algorithms.quadric import DOF_LOSS, N_PARAMS, fit_masked, min_patch_size
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
 from algorithms.tiles import grid_cells, group_by_cell
-from worker.errors import ParameterError
 
 FIT_MAX_ITER = 100
 FIT_TOL = 1e-8

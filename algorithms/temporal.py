@@ -34,9 +34,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from algorithms.errors import MissingDimensionError, ParameterError
 from algorithms.result import DetectorResult
 from algorithms.stats import mad_sigma, normal_critical_value
-from worker.errors import MissingDimensionError, ParameterError
 
 #: A segment shorter than this is not tested: three neighbours are the least that determine the
 #: quadratic of eq. 15 and the point itself is the fourth.

@@ -9,7 +9,7 @@ Two comparisons, like for like:
 - commands: ``lidar-outliers detect IN -o OUT --detector temporal`` against the smallest laspy
   command, ``python -c "laspy.read(IN).write(OUT)"``, each a fresh process (interpreter start,
   imports, I/O, exit), run alternately ``--repeat`` times; min and median wall seconds;
-- in this process: ``worker.pipeline.process_file`` (in memory, and streaming) against
+- in this process: ``lidar_outliers.process.process_file`` (in memory, and streaming) against
   ``laspy.read(IN).write(OUT)``; best of ``--repeat``, CPU seconds beside.
 
 The machine is shared and its speed drifts by 10-20 % within minutes, hence the alternation.
@@ -36,7 +36,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from worker.pipeline import process_file  # noqa: E402
+from lidar_outliers.process import process_file  # noqa: E402
 
 
 def make_cloud(path: Path, n: int, seed: int = 0) -> None:

@@ -3,14 +3,14 @@
     .venv/bin/python benchmarks/bench_mobile.py                      # full size, seeds 0 1 2
     .venv/bin/python benchmarks/bench_mobile.py --scale 0.2 --seeds 0  # quick look
 
-Each cloud is generated in memory by :func:`lidar_outliers.simulator.simulate` (the same physics
+Each cloud is generated in memory by :func:`~lidar_outliers.tools.simulator.simulate` (the same physics
 as ``lidar-outliers simulate``). Detectors, all at their defaults:
 
-- ``height_field`` (:mod:`algorithms.mobile_height_field`), geometry only;
-- ``free_space`` (:mod:`algorithms.mobile_free_space`), with each point's scanner position taken
+- ``height_field`` (:mod:`algorithms.height_field`), geometry only;
+- ``free_space`` (:mod:`algorithms.free_space`), with each point's scanner position taken
   from the simulated trajectory and the scanners' lever arms (``SCANNERS`` of the simulator),
   as a mobile-mapping system delivers them;
-- ``transient`` (:mod:`algorithms.mobile_transient`), coordinates and GPS times only;
+- ``transient`` (:mod:`algorithms.transient`), coordinates and GPS times only;
 - ``mobile`` = a point flagged by any of them (the proposed default for mobile-mapping files);
 - ``no_trajectory`` = height_field or transient (what runs when no trajectory comes with a file).
 
@@ -32,10 +32,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from algorithms.mobile_free_space import detect_free_space, scanner_origins  # noqa: E402
-from algorithms.mobile_height_field import detect_height_field  # noqa: E402
-from algorithms.mobile_transient import detect_transient  # noqa: E402
-from lidar_outliers.simulator import KIND_NAMES, SCANNERS, simulate  # noqa: E402
+from algorithms.free_space import detect_free_space, scanner_origins  # noqa: E402
+from algorithms.height_field import detect_height_field  # noqa: E402
+from algorithms.transient import detect_transient  # noqa: E402
+from lidar_outliers.tools.simulator import KIND_NAMES, SCANNERS, simulate  # noqa: E402
 
 #: Scanner lever arms (forward, left, up) relative to the trajectory's reference point: the
 #: simulated trajectory is the roof point at the scanners' height.

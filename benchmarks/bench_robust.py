@@ -14,11 +14,11 @@ Sections (each skipped when its data is missing):
    unlabelled points, for ``detached`` (and, with ``--patch-speed``, the paper's ``patch`` for the
    speed comparison). Targets: recall >= 95 %, false alarms <= 0.1 %.
 3. ISPRS airborne samples (``tests/data/isprs``, no outlier truth): share flagged by ``detached``.
-4. Simulated clouds A, B, C (``lidar_outliers.simulator`` via the bench cache), seeds 0..n-1:
+4. Simulated clouds A, B, C (``lidar_outliers.tools.simulator`` via the bench cache), seeds 0..n-1:
    recall and false alarms of ``detached`` per seed. Targets: recall >= 90 %, false alarms
    <= 0.05 %.
 
-Every section also names the profile :func:`worker.profiles.choose_profile` picks for the file.
+Every section also names the profile :func:`~lidar_outliers.profiles.choose_profile` picks for the file.
 Defaults only: nothing here is tuned per file.
 """
 
@@ -40,8 +40,8 @@ sys.path.insert(0, str(ROOT))
 from algorithms.detached import detect_detached  # noqa: E402
 from algorithms.dror import detect_dror  # noqa: E402
 from algorithms.snow import detect_snow  # noqa: E402
-from worker.lasio import inspect_las  # noqa: E402
-from worker.profiles import choose_profile  # noqa: E402
+from lidar_outliers.lasio import inspect_las  # noqa: E402
+from lidar_outliers.profiles import choose_profile  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
 
@@ -165,8 +165,8 @@ def bench_isprs(folder: Path) -> dict[str, Any]:
 
 
 def bench_simulated(cache: Path, seeds: int, scale: float) -> dict[str, Any]:
-    from lidar_outliers.bench import simulated_cloud
-    from worker.lasio import read_cloud
+    from lidar_outliers.lasio import read_cloud
+    from lidar_outliers.tools.bench import simulated_cloud
 
     print(f"## Simulated mobile clouds, scale {scale:g} (target recall >= 90 %, "
           "false alarms <= 0.05 %)\n")

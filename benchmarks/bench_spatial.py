@@ -54,7 +54,7 @@ def main() -> None:
         "--condition",
         choices=["road", "A", "B", "C"],
         default="road",
-        help="road: the synthetic crowned road above; A/B/C: lidar_outliers.simulator "
+        help="road: the synthetic crowned road above; A/B/C: lidar_outliers.tools.simulator "
         "(--points is then ignored; --scale sets the size, 1.0 = the paper's cloud)",
     )
     ap.add_argument("--scale", type=float, default=1.0)
@@ -67,7 +67,7 @@ def main() -> None:
     if args.condition == "road":
         xyz, truth = road_cloud(args.points)
     else:
-        from lidar_outliers.simulator import simulate
+        from lidar_outliers.tools.simulator import simulate
 
         cloud = simulate(args.condition, seed=0, scale=args.scale)
         xyz, truth = cloud.xyz, cloud.is_outlier

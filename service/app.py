@@ -16,11 +16,11 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from lidar_outliers.jobs.settings import Settings, get_settings
+from lidar_outliers.jobs.store import Store
 from service.jobs import JobService
 from service.problems import MEDIA_TYPE, Problem
 from service.routes import jobs, processes, system, uploads
-from service.settings import Settings, get_settings
-from service.store import Store
 
 log = logging.getLogger(__name__)
 

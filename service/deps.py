@@ -7,9 +7,9 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from lidar_outliers.jobs.settings import Settings
+from lidar_outliers.jobs.store import User
 from service.jobs import JobService
-from service.settings import Settings
-from service.store import User
 
 _bearer = HTTPBearer(auto_error=False, description="An API key from `lidar-outliers users add`.")
 

@@ -14,13 +14,18 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
+from lidar_outliers import lasio
+from lidar_outliers.atomic import atomic_path
+from lidar_outliers.errors import LidarOutliersError
+from lidar_outliers.jobs import layout
+from lidar_outliers.jobs.settings import Settings
+from lidar_outliers.jobs.store import ACTIVE, FINAL, Job, JobStatus, Store, Upload, User
+from lidar_outliers.params import PipelineParams
+from lidar_outliers.tools.plot import render_preview
+from lidar_outliers.trajectory import describe_trajectory, read_trajectory
+from service import queue
 from service.problems import Problem
 from service.processes import CLOUD_INPUT, TRAJECTORY_INPUT, preflight, resolve_inputs
-from service.settings import Settings
-from service.store import ACTIVE, FINAL, Job, JobStatus, Store, Upload, User
-from worker import tasks
-from worker.errors import LidarOutliersError
-from worker.params import PipelineParams
 
 log = logging.getLogger(__name__)
 
@@ -31,17 +36,10 @@ FACT_KEYS = ("name", "bytes", "points", "las_version", "point_format", "compress
 Enqueue = Callable[[str, int], None]
 
 
-def celery_enqueue(job_id: str, priority: int) -> None:
-    """Queue a job for the workers; ``priority`` 0 is taken first (Redis transport)."""
-    tasks.run_job.apply_async(args=[job_id], task_id=job_id, priority=priority)
-
-
 def las_facts(path: Path, name: str) -> dict[str, Any]:
     """Header facts of an uploaded file; 415 when it is not a LAS/LAZ file we can read."""
-    from worker.lasio import inspect_las
-
     try:
-        facts = inspect_las(path)
+        facts = lasio.inspect_las(path)
     except LidarOutliersError as exc:  # LasFormatError and kin: one line about the file
         message = str(exc).replace(path.name, name)
         if name not in message:
@@ -60,10 +58,11 @@ def las_facts(path: Path, name: str) -> dict[str, Any]:
 
 
 class JobService:
-    def __init__(self, settings: Settings, store: Store, enqueue: Enqueue = celery_enqueue):
+    def __init__(self, settings: Settings, store: Store, enqueue: Enqueue | None = None):
         self.settings = settings
         self.store = store
-        self.enqueue = enqueue
+        self.enqueue = enqueue or (lambda job_id, priority: queue.enqueue(settings, job_id,
+                                                                           priority))
 
     # ---- users -------------------------------------------------------------------------------
 
@@ -187,12 +186,12 @@ class JobService:
             raise
         job_id = os.urandom(16).hex()
         laz = bool(facts.get("compressed"))
-        target = tasks.input_path(self.settings, job_id, laz)
+        target = layout.input_path(self.settings, job_id, laz)
         target.parent.mkdir(parents=True, exist_ok=True)
         _place(source, target, move)
         stored = target.stat().st_size
         if trajectory is not None:
-            traj_target = tasks.trajectory_path(self.settings, job_id)
+            traj_target = layout.trajectory_path(self.settings, job_id)
             _place(trajectory, traj_target, move_trajectory)
             stored += traj_target.stat().st_size
         job = self.store.create_job(user.id, process_id, params, facts, laz,
@@ -223,7 +222,7 @@ class JobService:
         if job.status is not JobStatus.dismissed:
             job = self.store.transition(job_id, JobStatus.dismissed, "dismissed by the user",
                                         stored_bytes=0) or self.get(user, job_id)
-        shutil.rmtree(tasks.job_dir(self.settings, job_id), ignore_errors=True)
+        shutil.rmtree(layout.job_dir(self.settings, job_id), ignore_errors=True)
         return job
 
     def result_file(self, user: User, job_id: str, name: str) -> tuple[Job, Path]:
@@ -237,9 +236,9 @@ class JobService:
                           else "no-such-job",
                           f"job {job_id} is {job.status.value}: {job.message}; it has no results")
         if name == "statistics":
-            path = tasks.statistics_path(self.settings, job_id)
+            path = layout.statistics_path(self.settings, job_id)
         else:
-            path = tasks.result_path(self.settings, job_id, job.laz)
+            path = layout.result_path(self.settings, job_id, job.laz)
         if not path.exists():
             raise Problem(404, "no-such-job", f"the results of job {job_id} were deleted")
         return job, path
@@ -254,25 +253,17 @@ class JobService:
         derived = path.with_name(f"cloud-{keep}.{'laz' if laz else 'las'}")
         if not derived.exists():
             if keep == "all":
-                convert_cloud(path, derived, laz)
+                lasio.convert(path, derived, laz)
             else:
-                from worker.lasio import write_filtered
-
-                write_filtered(path, derived, keep, laz)
+                lasio.write_filtered(path, derived, keep, laz)
         return derived
 
     def preview_file(self, user: User, job_id: str) -> Path:
         _, path = self.result_file(user, job_id, "cloud")
         png = path.with_name("preview.png")
         if not png.exists():
-            try:
-                from lidar_outliers.plot import render_preview
-            except ImportError:
-                raise Problem(404, "not-found", "previews are not available in this "
-                              "installation") from None
-            tmp = png.with_name(f"preview.{os.urandom(6).hex()}.tmp.png")
-            render_preview(path, tmp)
-            os.replace(tmp, png)
+            with atomic_path(png) as tmp:
+                render_preview(path, tmp)
         return png
 
     # ---- retention ---------------------------------------------------------------------------
@@ -285,7 +276,7 @@ class JobService:
         removed = 0
         for job in self.store.jobs_finished_before(cutoff):
             if job.status in FINAL:
-                shutil.rmtree(tasks.job_dir(self.settings, job.id), ignore_errors=True)
+                shutil.rmtree(layout.job_dir(self.settings, job.id), ignore_errors=True)
                 self.store.delete_job(job.id)
                 removed += 1
         for upload in self.store.uploads_created_before(cutoff):
@@ -311,8 +302,6 @@ def _place(source: Path, target: Path, move: bool) -> None:
 
 def trajectory_facts(path: Path, name: str) -> dict[str, Any]:
     """Samples and time span of a received trajectory; 422 naming the line when unusable."""
-    from worker.trajectory import describe_trajectory, read_trajectory
-
     try:
         traj = read_trajectory(path, name)
     except LidarOutliersError as exc:
@@ -327,19 +316,6 @@ def las_facts_or_remove(part: Path, name: str) -> dict[str, Any]:
     except BaseException:
         part.unlink(missing_ok=True)
         raise
-
-
-def convert_cloud(source: Path, target: Path, laz: bool) -> None:
-    """Rewrite a LAS as LAZ or back, chunk by chunk, to a temporary name first."""
-    import laspy
-
-    tmp = target.with_name(target.stem + ".tmp" + target.suffix)
-    with laspy.open(source) as reader:
-        header = reader.header
-        with laspy.open(tmp, mode="w", header=header, do_compress=laz) as writer:
-            for chunk in reader.chunk_iterator(1_000_000):
-                writer.write_points(chunk)
-    os.replace(tmp, target)
 
 
 def status_document(job: Job, base_url: str = "") -> dict[str, Any]:

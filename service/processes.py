@@ -1,9 +1,9 @@
 """Process descriptions (OGC API - Processes) and input validation, generated from the pydantic
-parameter models in ``worker/params.py`` so the API, the CLI and the worker share one contract.
+parameter models in ``lidar_outliers/params.py`` so the API, the CLI and the worker share one contract.
 
 A single-detector process takes that detector's parameters plus the pipeline-level fields
 (``classify``, ``noise_class``, ``reference_classes``); the ``pipeline`` process takes
-:class:`worker.params.PipelineParams` as it is.
+:class:`lidar_outliers.params.PipelineParams` as it is.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, ValidationError, create_model
 
+from lidar_outliers.params import STAGE_MODELS, PipelineParams
 from service.problems import Problem
-from worker.params import STAGE_MODELS, PipelineParams
 
 PIPELINE = "pipeline"
 PIPELINE_LEVEL = ("classify", "noise_class", "reference_classes")
@@ -25,9 +25,9 @@ TRAJECTORY_INPUT = "trajectory"
 
 
 def stage_models() -> dict[str, type[BaseModel]]:
-    """Detectors by name: the registry of ``worker.detectors`` when present, else the models."""
+    """Detectors by name: the registry of ``lidar_outliers.detectors`` when present, else the models."""
     try:
-        from worker.detectors import DETECTORS
+        from lidar_outliers.detectors import DETECTORS
     except ImportError:
         return dict(STAGE_MODELS)
     models: dict[str, type[BaseModel]] = {}
@@ -193,10 +193,10 @@ def summary(process_id: str, base_url: str = "") -> dict[str, Any]:
 def preflight(params: PipelineParams, point_format: int) -> None:
     """Refuse before queueing what the worker would refuse at once: a patch ``k`` too small for
     its ``alpha``, a detector twice in a pipeline, a noise class the point format cannot hold."""
-    from worker.errors import ParameterError
+    from lidar_outliers.errors import ParameterError
 
     try:
-        from worker.pipeline import check_noise_class, resolve_stages
+        from lidar_outliers.pipeline import check_noise_class, resolve_stages
 
         resolve_stages(params, None)
         for stage in params.pipeline or []:

@@ -7,6 +7,7 @@ from typing import Any
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
+from service import queue
 from service.deps import SettingsDep
 from service.problems import PROBLEMS, Problem
 
@@ -52,10 +53,7 @@ def health(settings: SettingsDep) -> JSONResponse:
     except Exception as exc:  # any connection failure is the answer
         raise Problem(503, "service-unavailable", f"Redis at {settings.redis_url} is not "
                       f"reachable: {exc}", **report, redis="unreachable") from None
-    from worker.celery_app import app
-
-    replies = app.control.ping(timeout=1.0) or []
-    report["workers"] = sorted(name for reply in replies for name in reply)
+    report["workers"] = queue.ping_workers(settings)
     if not report["workers"]:
         raise Problem(503, "service-unavailable", "no Celery worker answered; start one with "
                       "`celery -A worker.celery_app worker` (or `make run`)", **report)

@@ -12,7 +12,7 @@ import pytest
 from algorithms import ground as G
 from algorithms.ground import classify_ground
 from algorithms.metrics import ground_scores
-from worker.errors import ParameterError
+from lidar_outliers.errors import ParameterError
 
 ISPRS = Path(__file__).resolve().parents[1] / "data" / "isprs"
 SAMPLES = ["samp11", "samp21", "samp31", "samp41", "samp51", "samp61", "samp71"]
@@ -522,7 +522,7 @@ def test_isprs_per_sample_sanity(isprs_scores, name):
 def test_parameter_model_defaults_are_the_function_defaults():
     import inspect
 
-    from worker.params import GroundParams
+    from lidar_outliers.params import GroundParams
 
     sig = inspect.signature(classify_ground)
     model = GroundParams().model_dump(exclude={"detector"})

@@ -7,8 +7,8 @@ import pytest
 from scipy import stats
 
 from algorithms.section import balanced_buckets, detect_section
+from lidar_outliers.errors import ParameterError
 from tests.algorithms.test_quadric import slow_fit
-from worker.errors import ParameterError
 
 
 def surface(rng, n, size=10.0, noise=0.005, plane=False):

@@ -24,7 +24,7 @@ from algorithms.temporal import (
     window_bounds,
     window_differences,
 )
-from worker.errors import MissingDimensionError, ParameterError
+from lidar_outliers.errors import MissingDimensionError, ParameterError
 
 # --------------------------------------------------------------------------------------------
 # Slow reference, written from the paper's equations

@@ -23,7 +23,7 @@ def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServ
 WARM_UP = """
 import sys, tempfile, pathlib
 from tests.e2e.clouds import write_cloud
-from worker.pipeline import process_file
+from lidar_outliers.process import process_file
 folder = pathlib.Path(tempfile.mkdtemp())
 write_cloud(folder / "in.las", n=3000)
 for pipeline in (None, [{"detector": "temporal", "sigma": 0.01}], [{"detector": "section"}],

@@ -13,9 +13,9 @@ import httpx
 import pytest
 from pydantic_core import to_jsonable_python
 
+from lidar_outliers.params import STAGE_MODELS, PipelineParams
 from tests.e2e.clouds import write_cloud
 from tests.e2e.stack import RedisServer, Stack, running_stack
-from worker.params import STAGE_MODELS, PipelineParams
 
 OGC = "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
 LIMIT = 300_000

@@ -9,8 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from lidar_outliers.commands.simulate import write_simulation
-from lidar_outliers.simulator import simulate
+from lidar_outliers.tools.simulator import simulate, write_simulation
 from tests.e2e.stack import RedisServer, Stack, running_stack, wait_job
 
 

@@ -13,7 +13,7 @@ import laspy
 import psutil
 import pytest
 
-from service.store import Store
+from lidar_outliers.jobs.store import Store
 from tests.e2e.clouds import write_cloud
 from tests.e2e.stack import RedisServer, Stack, alive, running_stack, wait_for, wait_job
 

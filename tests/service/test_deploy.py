@@ -11,7 +11,7 @@ from pathlib import Path
 
 import yaml
 
-from service.settings import Settings
+from lidar_outliers.jobs.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[2]
 SETTINGS = {name.upper() for name in Settings.model_fields}

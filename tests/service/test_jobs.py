@@ -13,12 +13,13 @@ import laspy
 import numpy as np
 import pytest
 
+from lidar_outliers.jobs import layout
+from lidar_outliers.jobs.execute import execute_job
+from lidar_outliers.jobs.settings import Settings
+from lidar_outliers.jobs.store import JobStatus, Store
 from service.jobs import JobService
 from service.problems import Problem
-from service.settings import Settings
-from service.store import JobStatus, Store
 from tests.e2e.clouds import write_cloud
-from worker import tasks
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -67,26 +68,26 @@ def test_priority_is_the_users_number_of_active_jobs(service, store, queued, tmp
 def test_worker_run_writes_result_and_statistics(service, store, settings, tmp_path) -> None:
     alice, _ = store.add_user("alice")
     job, spikes = submit(service, alice, tmp_path)
-    assert tasks.execute_job(settings, store, job.id) is JobStatus.successful
+    assert execute_job(settings, store, job.id) is JobStatus.successful
     done = store.get_job(job.id)
     assert done.status is JobStatus.successful and done.progress == 100
     assert done.stored_bytes > 0
-    las = laspy.read(tasks.result_path(settings, job.id, False))
+    las = laspy.read(layout.result_path(settings, job.id, False))
     assert set(spikes) <= set(np.flatnonzero(np.asarray(las.outlier_flags)))
-    stats = json.loads(tasks.statistics_path(settings, job.id).read_text())
+    stats = json.loads(layout.statistics_path(settings, job.id).read_text())
     assert "temporal" in json.dumps(stats)
     assert stats["input"]["name"] == "scan.las"
     # a late re-delivery of a finished job does nothing
-    assert tasks.execute_job(settings, store, job.id) is None
+    assert execute_job(settings, store, job.id) is None
 
 
 def test_worker_failure_is_recorded_with_its_message(service, store, settings, tmp_path):
     alice, _ = store.add_user("alice")
     job, _ = submit(service, alice, tmp_path, point_format=0)  # no gps_time
-    assert tasks.execute_job(settings, store, job.id) is JobStatus.failed
+    assert execute_job(settings, store, job.id) is JobStatus.failed
     failed = store.get_job(job.id)
     assert "gps_time" in failed.message and failed.finished
-    assert not tasks.result_path(settings, job.id, False).exists()
+    assert not layout.result_path(settings, job.id, False).exists()
 
 
 def test_job_whose_worker_died_twice_fails(service, store, settings, tmp_path) -> None:
@@ -94,7 +95,7 @@ def test_job_whose_worker_died_twice_fails(service, store, settings, tmp_path) -
     job, _ = submit(service, alice, tmp_path)
     store.transition(job.id, JobStatus.running, worker_pid=1)  # two deliveries that died
     store.transition(job.id, JobStatus.running, worker_pid=2)
-    assert tasks.execute_job(settings, store, job.id) is JobStatus.failed
+    assert execute_job(settings, store, job.id) is JobStatus.failed
     assert "died 2 times" in store.get_job(job.id).message
 
 
@@ -102,9 +103,9 @@ def test_dismissed_before_running_is_skipped(service, store, settings, tmp_path)
     alice, _ = store.add_user("alice")
     job, _ = submit(service, alice, tmp_path)
     service.dismiss(alice, job.id)
-    assert tasks.execute_job(settings, store, job.id) is None
+    assert execute_job(settings, store, job.id) is None
     assert store.get_job(job.id).status is JobStatus.dismissed
-    assert not tasks.job_dir(settings, job.id).exists()
+    assert not layout.job_dir(settings, job.id).exists()
 
 
 def test_retention_deletes_old_results_only(service, store, settings, tmp_path) -> None:
@@ -113,7 +114,7 @@ def test_retention_deletes_old_results_only(service, store, settings, tmp_path) 
     new, _ = submit(service, alice, tmp_path, "new.las")
     active, _ = submit(service, alice, tmp_path, "active.las")
     for job in (old, new):
-        tasks.execute_job(settings, store, job.id)
+        execute_job(settings, store, job.id)
     upload = service.store_upload(alice, _part(tmp_path, settings), "up.las")
     later = datetime.now(UTC) + timedelta(days=settings.retention_days, hours=1)
     # pretend "new" finished just now relative to `later`
@@ -124,8 +125,8 @@ def test_retention_deletes_old_results_only(service, store, settings, tmp_path) 
         db.execute("UPDATE jobs SET finished = ? WHERE id = ?", (stamp, new.id))
     removed = service.cleanup(now=later)
     assert removed == 2  # the old job and the upload
-    assert store.get_job(old.id) is None and not tasks.job_dir(settings, old.id).exists()
-    assert store.get_job(new.id) is not None and tasks.job_dir(settings, new.id).exists()
+    assert store.get_job(old.id) is None and not layout.job_dir(settings, old.id).exists()
+    assert store.get_job(new.id) is not None and layout.job_dir(settings, new.id).exists()
     assert store.get_job(active.id).status is JobStatus.accepted
     assert not Path(upload.path).exists()
 

@@ -1,14 +1,14 @@
-"""Process descriptions and inputs come from the pydantic models of worker/params.py."""
+"""Process descriptions and inputs come from the pydantic models of lidar_outliers/params.py."""
 
 from __future__ import annotations
 
 import pytest
 from pydantic_core import to_jsonable_python
 
+from lidar_outliers.detectors import DETECTORS
+from lidar_outliers.params import PipelineParams, TemporalParams
 from service.problems import Problem
 from service.processes import describe, process_ids, resolve_inputs
-from worker.detectors import DETECTORS
-from worker.params import PipelineParams, TemporalParams
 
 
 def test_one_process_per_registered_detector_plus_pipeline() -> None:

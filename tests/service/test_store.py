@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from service.store import JobStatus, Store, StoreError, hash_key
+from lidar_outliers.jobs.store import JobStatus, Store, StoreError, hash_key
 
 
 @pytest.fixture

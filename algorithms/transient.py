@@ -1,0 +1,126 @@
+"""The ``transient`` detector: structure seen at one moment only, attached to nothing (issue 5).
+
+The paper counts moving objects as outliers. A moving barrier arm is a clean cylinder, so no
+surface test can flag it, and the beams that saw through its place at other times often went to
+the sky (no return) or left the clipped strip, so ``free_space`` has no evidence either. What
+remains is time: a static surface is seen again, by the other scanner or on another pass, so
+next to its points lie points recorded at other moments; a moving object's place is occupied at
+one moment only.
+
+For n points with coordinates and GPS times:
+
+1. a point is *persistent* when among its ``k`` nearest neighbours, within ``radius``, there is
+   one recorded at least ``min_dt`` seconds earlier or later;
+2. the other points are *single-epoch* (a moving object, or a static surface that only one
+   scanner saw once, e.g. a car's end face or a wall behind a parked car);
+3. single-epoch points are joined into clusters (links of at most ``radius``); a cluster that
+   touches a persistent point (within ``radius``, among the k nearest) is part of the static
+   scene, occluded elsewhere; a cluster attached to nothing floats: it is flagged.
+
+Score per point: 0 persistent, 1 single-epoch in an attached cluster, 2 single-epoch in a
+floating cluster (flagged; critical value 1.5). Pure numpy/scipy (cKDTree, sparse connected
+components).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from algorithms.errors import ParameterError
+from algorithms.result import DetectorResult
+
+#: Points per kNN batch.
+KNN_BATCH = 262_144
+
+
+def neighbour_table(xyz: np.ndarray, k: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(n, k) int64 indices of each point's k nearest other points and (n, k) bool "within
+    radius" (False also for the padding of clouds with fewer than k + 1 points)."""
+    n = len(xyz)
+    kk = min(k + 1, n)
+    tree = cKDTree(xyz)
+    idx = np.zeros((n, k), dtype=np.int64)
+    near = np.zeros((n, k), dtype=bool)
+    for s in range(0, n, KNN_BATCH):
+        d, j = tree.query(xyz[s:s + KNN_BATCH], k=kk, workers=-1)
+        d, j = d.reshape(-1, kk), j.reshape(-1, kk)
+        rows = np.arange(s, s + len(j))
+        # drop each point itself (not necessarily column 0 when points coincide)
+        not_self = j != rows[:, None]
+        keep = np.cumsum(not_self, axis=1) <= k
+        sel = not_self & keep
+        # the selected columns first, in distance order (stable sort of "not selected")
+        cols = np.argsort(~sel, axis=1, kind="stable")[:, :k]
+        width = cols.shape[1]
+        idx[s:s + len(j), :width] = np.take_along_axis(j, cols, axis=1)
+        near[s:s + len(j), :width] = (np.take_along_axis(d, cols, axis=1) <= radius) & (
+            np.take_along_axis(sel, cols, axis=1))
+    return idx, near
+
+
+def persistent_points(gps_time: np.ndarray, idx: np.ndarray, near: np.ndarray,
+                      min_dt: float) -> np.ndarray:
+    """(n,) bool: a neighbour within radius was recorded at least min_dt seconds apart."""
+    dt = np.abs(gps_time[idx] - gps_time[:, None])
+    return np.any(near & (dt >= min_dt), axis=1)
+
+
+def floating_clusters(xyz: np.ndarray, persistent: np.ndarray, idx: np.ndarray,
+                      near: np.ndarray, radius: float) -> np.ndarray:
+    """(n,) bool: single-epoch points whose cluster (links <= radius) touches no persistent
+    point among the neighbour table."""
+    single = np.flatnonzero(~persistent)
+    out = np.zeros(len(xyz), dtype=bool)
+    if single.size == 0:
+        return out
+    touches = np.any(near[single] & persistent[idx[single]], axis=1)
+    pairs = cKDTree(xyz[single]).query_pairs(radius, output_type="ndarray")
+    m = single.size
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+    n_comp, label = connected_components(graph, directed=False)
+    attached = np.zeros(n_comp, dtype=bool)
+    attached[label[touches]] = True
+    out[single[~attached[label]]] = True
+    return out
+
+
+def detect_transient(
+    xyz: np.ndarray,
+    gps_time: np.ndarray,
+    *,
+    k: int = 24,
+    radius: float = 0.2,
+    min_dt: float = 0.5,
+) -> DetectorResult:
+    """Flag floating single-epoch clusters (module docstring).
+
+    xyz (n, 3) metres, gps_time (n,) seconds (finite). Returns a DetectorResult with score (n,)
+    in {0, 1, 2}, flagged = score == 2, critical_value 1.5.
+    """
+    arr = np.asarray(xyz, dtype=np.float64)
+    t = np.asarray(gps_time, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3 or t.shape != (len(arr),):
+        raise ParameterError(f"xyz must have shape (n, 3) and gps_time (n,), got {arr.shape} "
+                             f"and {t.shape}")
+    if not (np.all(np.isfinite(arr)) and np.all(np.isfinite(t))):
+        raise ParameterError("xyz or gps_time holds NaN or infinite values")
+    if not (1 <= k <= 200 and radius > 0 and min_dt > 0):
+        raise ParameterError(f"need 1 <= k <= 200, radius > 0 and min_dt > 0, got k={k}, "
+                             f"radius={radius}, min_dt={min_dt}")
+    n = len(arr)
+    info = {"k": int(k), "radius": float(radius), "min_dt": float(min_dt), "points": n}
+    if n < 2:
+        score = np.zeros(n)
+        info.update(points_tested=n, points_flagged=0, single_epoch=n)
+        return DetectorResult(score, np.zeros(n, bool), 1.5, info)
+    local = arr - arr.mean(axis=0)
+    idx, near = neighbour_table(local, k, radius)
+    persistent = persistent_points(t - t.min(), idx, near, min_dt)
+    flagged = floating_clusters(local, persistent, idx, near, radius)
+    score = np.where(persistent, 0.0, np.where(flagged, 2.0, 1.0))
+    info.update(points_tested=n, points_flagged=int(flagged.sum()),
+                single_epoch=int((~persistent).sum()))
+    return DetectorResult(score=score, flagged=flagged, critical_value=1.5, info=info)

@@ -1,0 +1,51 @@
+"""`lidar-outliers users add|list|revoke`: API keys of the job service.
+
+Acts on the store under ``DATA_DIR`` (default ``./data`` in the project root), the same one
+`make run` uses. ``add`` prints the new key alone on the last line so scripts can capture it:
+``KEY=$(lidar-outliers users add alice | tail -n 1)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from lidar_outliers.jobs.settings import get_settings
+from lidar_outliers.jobs.store import Store, StoreError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "users", help="manage API keys of the job service",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    actions = parser.add_subparsers(dest="users_action", required=True, metavar="ACTION")
+    add = actions.add_parser("add", help="create a user and print its new key (last line)")
+    add.add_argument("name")
+    actions.add_parser("list", help="list users (names and dates; keys are not stored)")
+    revoke = actions.add_parser("revoke", help="invalidate a user's key")
+    revoke.add_argument("name")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = get_settings()
+    store = Store(settings.db_path)
+    try:
+        if args.users_action == "add":
+            user, key = store.add_user(args.name)
+            print(f"created user {user.name!r} in {settings.db_path}; its key (shown only "
+                  "once) is on the next line:")
+            print(key, flush=True)
+        elif args.users_action == "list":
+            for user in store.list_users():
+                state = f"revoked {user.revoked}" if user.revoked else "active"
+                name = user.name.split("#revoked-")[0]
+                print(f"{name}\tcreated {user.created}\t{state}")
+        elif args.users_action == "revoke":
+            store.revoke_user(args.name)
+            print(f"revoked {args.name!r}")
+    except StoreError as exc:
+        print(f"lidar-outliers: error: {exc}", file=sys.stderr)
+        return 1
+    return 0

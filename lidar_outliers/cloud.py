@@ -1,0 +1,57 @@
+"""The points as plain arrays: what the detectors see of a LAS/LAZ file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+
+@dataclass
+class Cloud:
+    """The points as plain arrays, in file order.
+
+    Attributes
+    ----------
+    xyz : (n, 3) float64
+        Coordinates in metres relative to ``origin`` (world = xyz + origin).
+    origin : (3,) float64
+        Local origin, a point of the file's integer grid near the centre of the bounds.
+    gps_time : (n,) float64 or None
+        GPS time in seconds; None for point formats without it.
+    point_source_id, classification : (n,) integer arrays
+    intensity : (n,) uint16 or None
+        Pulse return strength (the ``snow`` detector uses it); None when not read.
+    trajectory : (m, 4) float64 or None
+        Optional platform path (:mod:`~lidar_outliers.trajectory`): time, then x, y, z in the same local
+        frame as ``xyz`` (file coordinates minus ``origin``); the ``transient`` detector adds
+        free-space evidence with it. A subset keeps the whole trajectory.
+    """
+
+    xyz: np.ndarray
+    origin: np.ndarray
+    gps_time: np.ndarray | None
+    point_source_id: np.ndarray
+    classification: np.ndarray
+    intensity: np.ndarray | None = None
+    trajectory: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    def subset(self, index: np.ndarray) -> Cloud:
+        """The points at ``index`` (integer indices or a boolean mask), same origin."""
+        return Cloud(
+            xyz=self.xyz[index],
+            origin=self.origin,
+            gps_time=None if self.gps_time is None else self.gps_time[index],
+            point_source_id=self.point_source_id[index],
+            classification=self.classification[index],
+            intensity=None if self.intensity is None else self.intensity[index],
+            trajectory=self.trajectory,
+        )
+
+    def with_trajectory(self, trajectory: np.ndarray) -> Cloud:
+        """The same points with ``trajectory`` ((m, 4): time, then x, y, z in file coordinates)
+        moved into the cloud's local frame."""
+        return replace(self, trajectory=trajectory - np.r_[0.0, self.origin])

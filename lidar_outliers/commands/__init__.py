@@ -1,1 +1,0 @@
-"""Sub-commands of `lidar-outliers`: each module here defines ``register(subparsers)``."""

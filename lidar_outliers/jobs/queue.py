@@ -1,0 +1,57 @@
+"""The job queue's contract: the task's name and the Celery settings both sides must share.
+
+The API enqueues by task name (it never imports the worker); the worker registers its task under
+the same name. Both build their Celery app from :func:`celery_config`, so priorities and the
+Redis transport options agree.
+
+Settings that make a job survive a dying worker:
+- ``task_acks_late`` + ``task_reject_on_worker_lost``: the message is acknowledged only after the
+  job ends, and re-queued when the process running it is killed (SIGKILL, out of memory);
+- ``worker_prefetch_multiplier = 1``: a busy worker holds no further jobs another could run;
+- the broker's ``visibility_timeout`` is longer than the hard time limit, so Redis re-delivers a
+  job whose whole worker vanished only once that job cannot still be running;
+- priorities 0-9 (0 first) let the API queue a user's n-th active job behind other users' first
+  jobs (fairness).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from lidar_outliers.jobs.settings import Settings
+
+#: The one task: run a job's pipeline over its input (argument: the job id).
+RUN_JOB_TASK = "lidar_outliers.run_job"
+PRIORITY_STEPS = list(range(10))
+#: Priority of a user's n-th active job (capped at the lowest priority).
+LOWEST_PRIORITY = PRIORITY_STEPS[-1]
+
+
+def celery_config(settings: Settings) -> dict[str, Any]:
+    """Celery settings of the API (producer) and the workers (consumers) alike."""
+    return dict(
+        broker_url=settings.redis_url,
+        task_acks_late=True,
+        task_reject_on_worker_lost=True,
+        worker_prefetch_multiplier=1,
+        task_ignore_result=True,
+        task_serializer="json",
+        accept_content=["json"],
+        task_time_limit=settings.task_time_limit,
+        task_soft_time_limit=settings.soft_time_limit,
+        task_default_priority=0,
+        broker_transport_options={
+            "visibility_timeout": settings.visibility_timeout,
+            "priority_steps": PRIORITY_STEPS,
+            # sweep for jobs of vanished workers every 5 s (kombu's default is every 100 s);
+            # a sweep re-queues only jobs older than the visibility timeout
+            "unacked_restore_interval": 5,
+            "unacked_restore_throttle": 1,
+        },
+        broker_connection_retry_on_startup=True,
+        worker_cancel_long_running_tasks_on_connection_loss=True,
+        # On SIGTERM/Ctrl-C: give a running job a few seconds, then re-queue it (Redis) and stop.
+        worker_soft_shutdown_timeout=5.0,
+        worker_enable_soft_shutdown_on_idle=True,
+        worker_hijack_root_logger=False,
+    )

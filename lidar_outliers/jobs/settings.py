@@ -1,0 +1,105 @@
+"""All configuration of the service, the worker, `serve` and `users`, from the environment.
+
+Every field is read from the environment variable of the same name in upper case (``DATA_DIR``,
+``REDIS_URL``, ...). With nothing set, the defaults are those of ``make run`` on one machine.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
+GIB = 1024**3
+
+
+class Settings(BaseSettings):
+    """Service settings; see the README's table of environment variables."""
+
+    model_config = SettingsConfigDict(env_prefix="", case_sensitive=False, extra="ignore")
+
+    environment: Literal["dev", "prod"] = Field(
+        "dev", description="`prod`: no development key, no exception text in answers, "
+        "REDIS_URL and DATA_DIR must be set."
+    )
+    redis_url: str = Field(
+        "redis://127.0.0.1:6379/0",
+        description="Celery broker. `lidar-outliers serve` starts its own redis-server when unset.",
+    )
+    data_dir: Path = Field(
+        PROJECT_ROOT / "data",
+        description="Uploads, results, the job and key database (SQLite), the local Redis AOF.",
+    )
+    max_upload_bytes: int = Field(2 * GIB, gt=0, description="Largest accepted upload (413 above).")
+    max_active_jobs_per_user: int = Field(
+        4, ge=1, description="Queued + running jobs per user (429 with Retry-After above)."
+    )
+    max_stored_bytes_per_user: int = Field(
+        20 * GIB, gt=0, description="Uploads + inputs + results kept per user (413 above)."
+    )
+    retention_days: float = Field(
+        7.0, gt=0, description="Finished jobs and unused uploads older than this are deleted."
+    )
+    cleanup_interval_seconds: float = Field(
+        3600.0, gt=0, description="How often the API runs the retention cleanup."
+    )
+    task_time_limit: int = Field(
+        6 * 3600, gt=0, description="Hard time limit of one job in seconds (the worker is killed)."
+    )
+    visibility_timeout: int = Field(
+        0, ge=0, description="Seconds after which Redis re-delivers a job whose worker vanished "
+        "(whole machine or worker process killed); must exceed TASK_TIME_LIMIT; 0 = "
+        "TASK_TIME_LIMIT + 600.",
+    )
+    max_attempts: int = Field(
+        2, ge=1, description="Deliveries of a job whose worker died before it is marked failed."
+    )
+    worker_concurrency: int = Field(1, ge=1, description="Worker processes `serve` starts.")
+    api_host: str = Field("127.0.0.1", description="Address `serve` binds the API to.")
+    api_port: int = Field(8000, ge=1, le=65535, description="Port `serve` binds the API to.")
+    retry_after_seconds: int = Field(30, ge=1, description="Retry-After sent with 429.")
+
+    @model_validator(mode="after")
+    def _resolve(self) -> Settings:
+        if self.environment == "prod":
+            missing = {"redis_url", "data_dir"} - self.model_fields_set
+            if missing:  # defaults meant for one developer's machine
+                names = ", ".join(sorted(m.upper() for m in missing))
+                raise ValueError(f"ENVIRONMENT=prod needs {names} set explicitly")
+        self.data_dir = self.data_dir.expanduser().resolve()
+        if self.visibility_timeout == 0:
+            self.visibility_timeout = self.task_time_limit + 600
+        if self.visibility_timeout <= self.task_time_limit:
+            # a job still running would be delivered a second time
+            raise ValueError(
+                f"VISIBILITY_TIMEOUT ({self.visibility_timeout}) must exceed TASK_TIME_LIMIT "
+                f"({self.task_time_limit})"
+            )
+        return self
+
+    @property
+    def soft_time_limit(self) -> int:
+        """The job gets SoftTimeLimitExceeded (and fails cleanly) this long before the kill."""
+        return max(1, self.task_time_limit - min(30, self.task_time_limit // 10))
+
+    @property
+    def db_path(self) -> Path:
+        return self.data_dir / "service.sqlite3"
+
+    @property
+    def jobs_dir(self) -> Path:
+        return self.data_dir / "jobs"
+
+    @property
+    def uploads_dir(self) -> Path:
+        return self.data_dir / "uploads"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process-wide settings (read once from the environment)."""
+    return Settings()

@@ -1,0 +1,214 @@
+"""A temporal-only pipeline in one streaming pass over a file in time order per scanner.
+
+Memory is bounded by a few chunks, whatever the file's size: points are read chunk by chunk,
+scored by :class:`algorithms.temporal.TemporalStream` and written as soon as every point of a
+chunk has its final score.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import laspy
+import numpy as np
+
+from lidar_outliers import lasio
+from lidar_outliers.detectors import get_detector
+from lidar_outliers.lasio import LasFacts
+from lidar_outliers.params import OUTLIER_DETECTOR_BITS, PipelineParams
+from lidar_outliers.pipeline import GROUND_CLASS, Progress, jsonable
+
+
+class _NotTimeOrdered(Exception):
+    """Raised inside the streaming run to fall back to the in-memory path."""
+
+
+def temporal_only(params: PipelineParams) -> bool:
+    return params.pipeline is not None and [s.detector for s in params.pipeline] == ["temporal"]
+
+
+def stream_temporal(
+    in_path: Path, out_path: Path, params: PipelineParams, facts: LasFacts, compress: bool,
+    progress: Progress | None, chunk_points: int,
+) -> tuple[dict[str, Any] | None, str]:
+    """Run a temporal-only pipeline in one streaming pass (memory bounded by a few chunks).
+
+    Needs the points in time order within each scanner group; at the first point that breaks
+    it, the partial output is discarded and ``(None, reason)`` returned so that the caller runs
+    the in-memory path. Otherwise returns the statistics.
+    """
+    try:
+        from algorithms.temporal import TemporalStream
+    except ImportError:
+        return None, "algorithms.temporal.TemporalStream is not available"
+    stage = params.pipeline[0]
+    spec = get_detector("temporal")
+    stream = TemporalStream(n1=stage.n1, n2=stage.n2, sigma=stage.sigma, alpha=stage.alpha,
+                            max_gap=stage.max_gap)
+    critical = stream.critical_value
+    bit = np.uint8(spec.bit)
+    counts = _StreamCounts()
+    started = time.perf_counter()
+    pending: list[_Pending] = []
+    last_time: dict[int, float] = {}
+    with lasio._laspy_errors(in_path.name), laspy.open(in_path) as reader:
+        grid, _ = lasio.grid_origin(reader.header)
+        scales = np.asarray(reader.header.scales)
+    n = facts.points
+    try:
+        with lasio.ResultWriter(in_path, out_path, lasio.result_dimensions(["temporal"]),
+                                laz=compress) as writer:
+            start = 0
+            for chunk in lasio.iter_chunks(in_path, chunk_points):
+                stop = start + len(chunk)
+                t = np.asarray(chunk.array["gps_time"], dtype=np.float64)
+                group = (None if stage.group_by == "none"
+                         else np.asarray(chunk.array["point_source_id"]))
+                if not _in_time_order(t, group, last_time):
+                    raise _NotTimeOrdered
+                pending.append(_Pending(start, writer.record(chunk)))
+                done = stream.push(lasio.local_xyz(chunk, grid, scales), t, group,
+                                   np.arange(start, stop, dtype=np.int64))
+                _assign(pending, *done)
+                _flush(pending, writer, params, critical, bit, counts, final=False)
+                start = stop
+                if progress is not None:
+                    progress(0.95 * stop / n, f"temporal (streaming): {stop:,} of {n:,} points")
+            _assign(pending, *stream.finish())
+            _flush(pending, writer, params, critical, bit, counts, final=True)
+    except _NotTimeOrdered:
+        return None, "points are not in time order per scanner: read into memory instead"
+    entry = {
+        "detector": "temporal",
+        "params": stage.model_dump(mode="json"),
+        "points_in": n,
+        "info": stream.info,
+        "points_tested": counts.tested,
+        "points_flagged": counts.flagged,
+        "critical_value": critical,
+        "seconds": round(time.perf_counter() - started, 4),
+    }
+    noise_ref = [c for c in params.reference_classes or [] if c != GROUND_CLASS]
+    overall: dict[str, Any] = {
+        "points": n,
+        "points_flagged": counts.flagged,
+        "flagged_by_bit": {name: counts.flagged if name == "temporal" else 0
+                           for name in OUTLIER_DETECTOR_BITS},
+    }
+    if noise_ref:
+        confusion = counts.confusion()
+        entry["confusion"] = overall["confusion"] = confusion
+    stats = {
+        "input": facts.to_dict(),
+        "pipeline_source": "given",
+        "mode": "streaming",
+        "classify": params.classify,
+        "noise_class": params.noise_class,
+        "reference_classes": params.reference_classes,
+        "stages": [entry],
+        "overall": overall,
+    }
+    return jsonable(stats), "streamed in one pass"
+
+
+def _in_time_order(t: np.ndarray, group: np.ndarray | None, last: dict[int, float]) -> bool:
+    """Whether finite times never decrease within a group, across chunks too (updates ``last``)."""
+    finite = np.isfinite(t)
+    tt = t[finite]
+    if tt.size == 0:
+        return True
+    if group is None:
+        gs, ts = np.zeros(tt.size, np.uint8), tt
+    else:
+        g = group[finite]  # uint16 point_source_id: numpy's stable sort is a radix sort here
+        order = np.argsort(g, kind="stable")
+        gs, ts = g[order], tt[order]
+    same = gs[1:] == gs[:-1]
+    if np.any(ts[1:][same] < ts[:-1][same]):
+        return False
+    firsts = np.flatnonzero(np.r_[True, ~same])
+    lasts = np.r_[firsts[1:] - 1, gs.size - 1]
+    for f, l in zip(firsts, lasts, strict=True):
+        gid = int(gs[f])
+        if gid in last and ts[f] < last[gid]:
+            return False
+        last[gid] = float(ts[l])
+    return True
+
+
+@dataclass
+class _Pending:
+    """An output chunk waiting for the scores of all its points."""
+
+    start: int
+    record: Any
+    score: np.ndarray = field(init=False)
+    done: int = 0
+
+    def __post_init__(self) -> None:
+        self.score = np.full(len(self.record), np.nan, dtype=np.float32)
+
+    @property
+    def stop(self) -> int:
+        return self.start + len(self.record)
+
+
+@dataclass
+class _StreamCounts:
+    points: int = 0
+    tested: int = 0
+    flagged: int = 0
+    outliers: int = 0
+    identified: int = 0
+
+    def confusion(self) -> dict[str, Any]:
+        from algorithms.metrics import outlier_confusion
+
+        # Rebuild boolean arrays of the right counts: the metric needs only the four counts.
+        tp, fp = self.identified, self.flagged - self.identified
+        fn, tn = self.outliers - tp, self.points - self.outliers - fp
+        truth = np.repeat([True, False, True, False], [tp, fp, fn, tn])
+        flagged = np.repeat([True, True, False, False], [tp, fp, fn, tn])
+        return outlier_confusion(truth, flagged)
+
+
+def _assign(pending: list[_Pending], index: np.ndarray, score: np.ndarray) -> None:
+    if index.size == 0:
+        return
+    starts = np.array([p.start for p in pending])
+    which = np.searchsorted(starts, index, side="right") - 1
+    for k in np.unique(which):
+        sel = which == k
+        p = pending[int(k)]
+        p.score[index[sel] - p.start] = score[sel]
+        p.done += int(np.count_nonzero(sel))
+
+
+def _flush(
+    pending: list[_Pending], writer: lasio.ResultWriter, params: PipelineParams, critical: float,
+    bit: np.uint8, counts: _StreamCounts, *, final: bool,
+) -> None:
+    """Write the leading chunks whose points all have their final score."""
+    noise_ref = [c for c in params.reference_classes or [] if c != GROUND_CLASS]
+    while pending and (pending[0].done == len(pending[0].record) or final):
+        p = pending.pop(0)
+        flagged = p.score > critical
+        record = p.record
+        record[lasio.FLAGS_DIMENSION] = np.where(flagged, bit, np.uint8(0))
+        record[lasio.score_dimension("temporal")] = p.score
+        classes = np.asarray(record.classification)
+        if noise_ref:
+            truth = np.isin(classes, noise_ref)
+            counts.outliers += int(np.count_nonzero(truth))
+            counts.identified += int(np.count_nonzero(truth & flagged))
+        if params.classify:
+            record.classification = np.where(flagged, params.noise_class, classes).astype(np.uint8)
+        counts.points += len(record)
+        counts.tested += int(np.count_nonzero(~np.isnan(p.score)))
+        counts.flagged += int(np.count_nonzero(flagged))
+        writer.write(record)
+
+

@@ -1,0 +1,767 @@
+"""`lidar-outliers bench`: the evidence of issue 4 (and 5), as Markdown tables.
+
+Sections, each skipped when its data is absent:
+
+1. Simulated clouds A, B, C (:mod:`lidar_outliers.tools.simulator`, cached under ``.bench/``): every
+   outlier pipeline -- the paper's ``temporal``, ``patch``, ``section`` and ``temporal->patch``,
+   then every other outlier detector of :data:`lidar_outliers.detectors.DETECTORS` alone, then the
+   default pipeline when it differs -- in the layout of the paper's Tables 2-5 beside the
+   published figures, plus precision, recall and F1; and a summary against issue 5's targets.
+2. ISPRS ground-filter samples: type I, type II, total error and kappa per sample and the mean.
+3. WADS snow frames: precision, recall, F1 of each pipeline and of the baselines (DROR from
+   ``algorithms.dror`` when it exists, Open3D's statistical/radius outlier removal when
+   ``open3d`` is importable).
+4. Airborne gross outliers: recall on ``gross`` and false alarms on the unlabelled points.
+5. Speed on cloud A: points/s and peak RSS of one subprocess per detector.
+
+Pipelines run through :func:`~lidar_outliers.pipeline.run_pipeline`, the code the CLI and service
+run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidar_outliers.errors import LidarOutliersError
+from lidar_outliers.tools import paper
+
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+QUICK_SCALE, QUICK_SEEDS = 0.06, 1
+FULL_SCALE, FULL_SEEDS = 1.0, 3
+PAPER_PIPELINES = ("temporal", "patch", "section", "temporal->patch")
+#: Issue 5's targets on the simulated clouds.
+TARGET_RECALL, TARGET_FALSE_ALARM_PCT = 0.90, 0.05
+
+Print = Callable[[str], None]
+
+
+@dataclass
+class BenchConfig:
+    quick: bool = False
+    seeds: int | None = None
+    scale: float | None = None
+    isprs: Path | None = None
+    wads: Path | None = None
+    airborne: Path | None = None
+    cache: Path = Path(".bench")
+    speed: bool = True
+    command: str = ""
+
+    @property
+    def n_seeds(self) -> int:
+        return self.seeds or (QUICK_SEEDS if self.quick else FULL_SEEDS)
+
+    @property
+    def sim_scale(self) -> float:
+        return self.scale or (QUICK_SCALE if self.quick else FULL_SCALE)
+
+
+@dataclass
+class Report:
+    """The Markdown lines of every section, and the numbers behind them (JSON-able)."""
+
+    lines: list[str] = field(default_factory=list)
+    numbers: dict[str, Any] = field(default_factory=dict)
+
+    def markdown(self) -> str:
+        return "\n".join(self.lines) + "\n"
+
+
+# --------------------------------------------------------------------------- pipelines
+
+
+def outlier_pipelines() -> dict[str, list[str]]:
+    """Pipelines to compare, by display name -> detector names in order.
+
+    The paper's four first; then each other outlier detector in the registry alone (so new
+    detectors appear without touching this file); then the default pipeline if it is new.
+    """
+    from lidar_outliers.detectors import DETECTORS
+    from lidar_outliers.params import default_stages
+
+    out = {name: name.split("->") for name in PAPER_PIPELINES}
+    out = {k: v for k, v in out.items() if all(d in DETECTORS for d in v)}
+    for name, spec in DETECTORS.items():
+        if spec.kind == "outlier" and name not in out:
+            out[name] = [name]
+    default = [s.detector for s in default_stages(True)]
+    key = "->".join(default)
+    if key not in out:
+        out[f"default ({key})"] = default
+    if "transient" in default:  # the only detector that uses a trajectory (free-space evidence)
+        out[f"default ({key}){WITH_TRAJECTORY}"] = default
+    return out
+
+
+#: Suffix of a pipeline name run with the simulator's trajectory file attached to the cloud.
+WITH_TRAJECTORY = " + trajectory"
+
+
+def with_simulated_trajectory(cloud, las_path: Path):
+    """The cloud with the trajectory the simulator wrote beside it, or None when there is none."""
+    from lidar_outliers.trajectory import read_trajectory
+
+    path = las_path.with_suffix(".trajectory.txt")
+    if not path.exists():
+        return None
+    return cloud.with_trajectory(read_trajectory(path))
+
+
+def run_outlier_pipeline(cloud, stages: list[str]) -> tuple[np.ndarray, list[np.ndarray], float]:
+    """Flags (n,) bool of the pipeline, flags per stage, and seconds it took."""
+    from lidar_outliers.detectors import DETECTORS
+    from lidar_outliers.params import parse_pipeline_params
+    from lidar_outliers.pipeline import run_pipeline
+
+    params = parse_pipeline_params({"pipeline": [{"detector": d} for d in stages],
+                                    "classify": False})
+    start = time.perf_counter()
+    result = run_pipeline(cloud, params)
+    seconds = time.perf_counter() - start
+    per_stage = [(result.flags & np.uint8(DETECTORS[d].bit or 0)) != 0 for d in stages]
+    return result.flags != 0, per_stage, seconds
+
+
+# --------------------------------------------------------------------------- simulated clouds
+
+
+def simulator_version() -> str:
+    """Short hash of the simulator's source: a changed simulator never reuses a stale cache."""
+    from lidar_outliers.tools import simulator
+
+    return hashlib.sha1(Path(simulator.__file__).read_bytes()).hexdigest()[:10]
+
+
+def simulated_cloud(cache: Path, condition: str, seed: int, scale: float) -> Path:
+    """Path of the cached simulated LAS (written on first use)."""
+    from lidar_outliers.tools.simulator import simulate, stem, write_simulation
+
+    folder = cache / "sim" / simulator_version() / f"scale{scale:g}"
+    las = folder / f"{stem(condition, seed)}.las"
+    if not (las.exists() and las.with_suffix(".truth.npz").exists()):
+        write_simulation(simulate(condition, seed, scale), folder)
+    return las
+
+
+def _pooled_confusion(truth: list[np.ndarray], flagged: list[np.ndarray]) -> dict[str, Any]:
+    from algorithms.metrics import outlier_confusion
+
+    return outlier_confusion(np.concatenate(truth), np.concatenate(flagged))
+
+
+def bench_simulated(cfg: BenchConfig, report: Report, say: Print) -> dict[str, Path]:
+    """Section 1. Returns the path of cloud A per seed (the speed section uses the first)."""
+    from lidar_outliers.lasio import read_cloud
+
+    pipelines = outlier_pipelines()
+    seeds = list(range(cfg.n_seeds))
+    truth: dict[str, list[np.ndarray]] = {c: [] for c in paper.CLOUDS}
+    flags: dict[tuple[str, str], list[np.ndarray]] = {}
+    stage_flags: dict[tuple[str, str], list[list[np.ndarray]]] = {}
+    seconds: dict[tuple[str, str], float] = {}
+    points: dict[str, int] = dict.fromkeys(paper.CLOUDS, 0)
+    a_paths: dict[str, Path] = {}
+    kinds: list[np.ndarray] = []
+    kind_names: list[str] = []
+    failed: dict[str, str] = {}
+    for cond in paper.CLOUDS:
+        for seed in seeds:
+            path = simulated_cloud(cfg.cache, cond, seed, cfg.sim_scale)
+            if cond == "A":
+                a_paths[str(seed)] = path
+            cloud = read_cloud(path)
+            with np.load(path.with_suffix(".truth.npz")) as t:
+                truth[cond].append(np.asarray(t["is_outlier"], dtype=bool))
+                kinds.append(np.asarray(t["kind"], dtype=np.uint8))
+                kind_names = [str(k) for k in t["kind_names"]]
+            points[cond] += len(cloud)
+            tracked = with_simulated_trajectory(cloud, path)
+            for name, stages in pipelines.items():
+                run_on = tracked if name.endswith(WITH_TRAJECTORY) else cloud
+                if name in failed or run_on is None:
+                    continue
+                say(f"  {cond} seed {seed}: {name}")
+                try:
+                    f, per_stage, sec = run_outlier_pipeline(run_on, stages)
+                except LidarOutliersError as exc:  # e.g. a detector needing another dimension
+                    failed[name] = f"{type(exc).__name__}: {exc}"
+                    continue
+                flags.setdefault((name, cond), []).append(f)
+                stage_flags.setdefault((name, cond), []).append(per_stage)
+                seconds[(name, cond)] = seconds.get((name, cond), 0.0) + sec
+    n = len(seeds)
+    report.lines += [
+        "## Simulated clouds A, B, C",
+        "",
+        f"Simulated LYNX-like surveys (`lidar-outliers simulate`, scale {cfg.sim_scale:g}, "
+        f"seeds {', '.join(map(str, seeds))}). Counts are per cloud, averaged over the seeds; "
+        "percentages and precision/recall/F1 are pooled over the seeds. *paper* = Leslar, Wang "
+        "& Hu (2010).",
+        "",
+        "| Table 1 | A ours | A paper | B ours | B paper | C ours | C paper |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    row_pts, row_out, row_pct = ["Total No. of Points"], ["Total No. of Outliers"], [
+        "Total % of Points Which are Outliers"]
+    for c in paper.CLOUDS:
+        t = np.concatenate(truth[c])
+        row_pts += [f"{points[c] / n:,.0f}", f"{paper.TABLE1[c]['points']:,}"]
+        row_out += [f"{t.sum() / n:,.0f}", f"{paper.TABLE1[c]['outliers']:,}"]
+        row_pct += [f"{100 * t.mean():.2f}", f"{paper.TABLE1[c]['pct_outliers']:.2f}"]
+    report.lines += [_row(r) for r in (row_pts, row_out, row_pct)] + [""]
+    summary = []
+    numbers: dict[str, Any] = {}
+    for name in failed:
+        report.lines += [f"### {name}", "", f"Not run on the simulated clouds: {failed[name]}", ""]
+    pipelines = {k: v for k, v in pipelines.items() if k not in failed}
+    for name, stages in pipelines.items():
+        table_name, published = paper.BY_PIPELINE.get(name, ("", None))
+        title = f"### {name}" + (f" (paper's {table_name})" if table_name else " (not in paper)")
+        report.lines += [title, "", "| | A ours | A paper | B ours | B paper | C ours | C paper |",
+                         "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        conf = {c: _pooled_confusion(truth[c], flags[(name, c)]) for c in paper.CLOUDS}
+        numbers[name] = conf
+        rows = _confusion_rows(conf, published, n)
+        if len(stages) == 2:
+            rows = _stage_rows(stages, truth, stage_flags, name, published, n) + rows
+        report.lines += [_row(r) for r in rows] + [""]
+        for c in paper.CLOUDS:
+            real = conf[c]["points"] - conf[c]["outliers"]
+            fa_pct = 100.0 * conf[c]["non_outliers_identified"] / max(real, 1)
+            summary.append((name, c, conf[c], fa_pct, seconds[(name, c)] / n))
+    report.lines += [
+        "### Summary against issue 5's targets",
+        "",
+        f"Target: recall >= {100 * TARGET_RECALL:.0f} % and false alarms <= "
+        f"{TARGET_FALSE_ALARM_PCT} % of the real (non-outlier) points on every cloud.",
+        "",
+        "| pipeline | cloud | recall % | false alarms % of real | precision % | F1 | seconds | "
+        "target |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
+    for name, c, conf, fa_pct, sec in summary:
+        recall = conf["recall"]
+        met = recall is not None and recall >= TARGET_RECALL and fa_pct <= TARGET_FALSE_ALARM_PCT
+        report.lines.append(_row([
+            name, c, _pct(recall), f"{fa_pct:.3f}", _pct(conf["precision"]), _f(conf["f1"]),
+            f"{sec:.1f}", "met" if met else "not met",
+        ]))
+    report.lines.append("")
+    report.lines += _kind_table(pipelines, flags, kinds, kind_names)
+    report.numbers["simulated"] = {"scale": cfg.sim_scale, "seeds": seeds, "pipelines": numbers}
+    return a_paths
+
+
+def _kind_table(pipelines, flags, kinds, kind_names) -> list[str]:
+    """Recall per simulated outlier kind (all clouds and seeds pooled): what each finds."""
+    kind = np.concatenate(kinds)
+    present = [k for k in range(1, len(kind_names)) if np.any(kind == k)]
+    lines = [
+        "### Recall by outlier kind (A, B, C pooled)",
+        "",
+        "| pipeline | " + " | ".join(f"{kind_names[k]} ({int(np.sum(kind == k)):,})"
+                                    for k in present) + " |",
+        "| --- |" + " ---: |" * len(present),
+    ]
+    for name in pipelines:
+        f = np.concatenate([np.concatenate(flags[(name, c)]) for c in paper.CLOUDS])
+        lines.append(_row([name] + [_pct(float(np.mean(f[kind == k]))) for k in present]))
+    return lines + [""]
+
+
+_ROWS = (
+    ("No. of Outliers Identified", "outliers_identified", "count"),
+    ("No. of Non-Outliers Identified", "non_outliers_identified", "count"),
+    ("No. of Outliers Missed", "outliers_missed", "count"),
+    ("% of Outliers Identified", "pct_outliers_identified", "pct"),
+    ("% of Point Cloud Identified", "pct_cloud_identified", "pct"),
+    ("% of Point Cloud Identified Incorrectly", "pct_cloud_identified_incorrectly", "pct"),
+    ("Precision %", "precision", "frac"),
+    ("Recall %", "recall", "frac"),
+    ("F1", "f1", "f1"),
+)
+
+
+def _confusion_rows(conf, published, n_seeds) -> list[list[str]]:
+    rows = []
+    for label, key, kind in _ROWS:
+        row = [label]
+        for c in paper.CLOUDS:
+            ours = conf[c][key]
+            theirs = (published or {}).get(c, {}).get(key)
+            if kind == "count":
+                row += [f"{ours / n_seeds:,.0f}", "—" if theirs is None else f"{theirs:,}"]
+            elif kind == "pct":
+                row += [_num(ours, 2), "—" if theirs is None else f"{theirs:.2f}"]
+            else:  # precision/recall/F1 from the paper's counts where it gives them
+                row += [_pct(ours) if kind == "frac" else _f(ours),
+                        _paper_ratio(key, (published or {}).get(c), kind, c)]
+        rows.append(row)
+    return rows
+
+
+def _stage_rows(stages, truth, stage_flags, name, published, n) -> list[list[str]]:
+    """Table 5's per-routine rows: outliers and non-outliers identified by each stage."""
+    rows = []
+    for key_kind, label_kind in (("outliers_identified", "No. of Outliers Identified"),
+                                 ("non_outliers_identified", "No. of Non-Outliers Identified")):
+        for i, (det, letter) in enumerate(zip(stages, "ab", strict=False)):
+            row = [f"{label_kind} - {det}"]
+            for c in paper.CLOUDS:
+                t = np.concatenate(truth[c])
+                f = np.concatenate([s[i] for s in stage_flags[(name, c)]])
+                count = int(np.count_nonzero(f & (t if key_kind.startswith("outliers") else ~t)))
+                theirs = (published or {}).get(c, {}).get(f"{key_kind}_{letter}")
+                row += [f"{count / n:,.0f}", "—" if theirs is None else f"{theirs:,}"]
+            rows.append(row)
+    return rows
+
+
+def _paper_ratio(key: str, pub: dict | None, kind: str, cloud: str) -> str:
+    """Precision, recall or F1 from the paper's counts (recall against Table 1's outliers, as
+    the paper's own percentages are; its missed counts do not always add up to Table 1)."""
+    if not pub:
+        return "—"
+    tp, fp = pub["outliers_identified"], pub["non_outliers_identified"]
+    precision = tp / (tp + fp) if tp + fp else None
+    recall = tp / paper.TABLE1[cloud]["outliers"]
+    f1 = 2 * precision * recall / (precision + recall) if precision and recall else None
+    value = {"precision": precision, "recall": recall, "f1": f1}[key]
+    return _pct(value) if kind == "frac" else _f(value)
+
+
+def _row(cells: list[str]) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |"
+
+
+def _num(v, digits: int) -> str:
+    return "—" if v is None else f"{v:.{digits}f}"
+
+
+def _pct(v) -> str:
+    return "—" if v is None else f"{100 * v:.1f}"
+
+
+def _f(v) -> str:
+    return "—" if v is None else f"{v:.3f}"
+
+
+# --------------------------------------------------------------------------- ISPRS
+
+
+def las_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in (".las", ".laz"))
+
+
+def bench_isprs(folder: Path, report: Report, say: Print) -> None:
+    """Section 2: the ground filter on every LAS/LAZ file of ``folder`` (class 2 = truth)."""
+    from algorithms.metrics import ground_scores
+    from lidar_outliers.lasio import read_cloud
+    from lidar_outliers.params import parse_pipeline_params
+    from lidar_outliers.pipeline import run_pipeline
+
+    files = las_files(folder)
+    if not files:
+        return
+    report.lines += [
+        "## ISPRS ground-filter samples",
+        "",
+        f"`ground` with default parameters on {len(files)} sample(s) of `{folder}` (incoming "
+        "classification reset; reference ground = class 2).",
+        "",
+        "| sample | points | type I % | type II % | total error % | kappa % | seconds |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    params = parse_pipeline_params({"pipeline": [{"detector": "ground"}], "classify": True})
+    rows = []
+    for path in files:
+        say(f"  ISPRS {path.name}")
+        cloud = read_cloud(path)
+        truth = cloud.classification == 2
+        cloud.classification[:] = 0
+        start = time.perf_counter()
+        result = run_pipeline(cloud, params)
+        sec = time.perf_counter() - start
+        scores = ground_scores(truth, result.classification == 2)
+        rows.append((path.stem, scores, sec))
+        report.lines.append(_row([
+            path.stem, f"{scores['points']:,}", _num(scores["type_i_pct"], 2),
+            _num(scores["type_ii_pct"], 2), _num(scores["total_error_pct"], 2),
+            _num(scores["kappa_pct"], 2), f"{sec:.1f}",
+        ]))
+    keys = ("type_i_pct", "type_ii_pct", "total_error_pct", "kappa_pct")
+    means = {k: _mean([r[1][k] for r in rows]) for k in keys}
+    report.lines += [_row(["**mean**", f"{sum(r[1]['points'] for r in rows):,}"]
+                          + [_num(means[k], 2) for k in keys]
+                          + [f"{sum(r[2] for r in rows):.1f}"]), ""]
+    report.numbers["isprs"] = {"samples": {r[0]: r[1] for r in rows}, "mean": means}
+
+
+def _mean(values: list) -> float | None:
+    vals = [v for v in values if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+# --------------------------------------------------------------------------- real outliers
+
+
+def baselines() -> dict[str, Callable[[Any], np.ndarray]]:
+    """Outlier filters from outside the project: DROR (``algorithms.dror``), Open3D's SOR/ROR.
+
+    Each takes a Cloud and returns flagged (n,) bool. DROR is skipped here when it is already a
+    registered detector (then it runs as a pipeline).
+    """
+    from lidar_outliers.detectors import DETECTORS
+
+    out: dict[str, Callable[[Any], np.ndarray]] = {}
+    if "dror" not in DETECTORS:
+        try:
+            from algorithms import dror
+        except ImportError:
+            dror = None
+        fn = _find_detect(dror) if dror is not None else None
+        if fn is not None:
+            out["DROR (baseline)"] = lambda cloud: _flags_of(fn(cloud.xyz + cloud.origin))
+    try:
+        import open3d as o3d  # noqa: F401
+    except ImportError:
+        return out
+    out["Open3D statistical (20, 2.0)"] = _open3d_statistical
+    out["Open3D radius (3 in 0.5 m)"] = _open3d_radius
+    return out
+
+
+def _find_detect(module) -> Callable | None:
+    for name, fn in inspect.getmembers(module, inspect.isfunction):
+        if name.startswith("detect") and fn.__module__ == module.__name__:
+            return fn
+    return None
+
+
+def _flags_of(result) -> np.ndarray:
+    return np.asarray(getattr(result, "flagged", result), dtype=bool)
+
+
+def _open3d_cloud(cloud):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(cloud.xyz)
+    return pcd
+
+
+def _open3d_statistical(cloud) -> np.ndarray:
+    _, keep = _open3d_cloud(cloud).remove_statistical_outlier(nb_neighbors=20, std_ratio=2.0)
+    flagged = np.ones(len(cloud), dtype=bool)
+    flagged[np.asarray(keep, dtype=int)] = False
+    return flagged
+
+
+def _open3d_radius(cloud) -> np.ndarray:
+    _, keep = _open3d_cloud(cloud).remove_radius_outlier(nb_points=3, radius=0.5)
+    flagged = np.ones(len(cloud), dtype=bool)
+    flagged[np.asarray(keep, dtype=int)] = False
+    return flagged
+
+
+def _labelled_files(folder: Path) -> list[tuple[Path, Path]]:
+    pairs = []
+    for path in las_files(folder):
+        truth = path.with_name(path.name.split(".")[0] + ".truth.npz")
+        if truth.exists():
+            pairs.append((path, truth))
+    return pairs
+
+
+def run_default_pipeline(cloud, facts) -> tuple[str, np.ndarray, float]:
+    """What a job naming no pipeline runs on this file: (row name, flags (n,) bool, seconds)."""
+    from lidar_outliers.params import parse_pipeline_params
+    from lidar_outliers.pipeline import run_pipeline
+
+    params = parse_pipeline_params({"classify": False})
+    start = time.perf_counter()
+    result = run_pipeline(cloud, params, facts=facts)
+    seconds = time.perf_counter() - start
+    stats = result.statistics
+    stages = "->".join(stage["detector"] for stage in stats["stages"])
+    return f"default: {stats.get('profile', '?')} profile ({stages})", result.flags != 0, seconds
+
+
+def _all_methods(cloud, say: Print, label: str, facts=None):
+    """(name, flagged, seconds) for every outlier pipeline and baseline on one cloud.
+
+    The default pipeline is the one the file's profile chooses (``facts``: its header facts),
+    not the mobile default that the simulated section shows.
+    """
+    say(f"  {label}: default pipeline")
+    yield run_default_pipeline(cloud, facts)
+    for name, stages in outlier_pipelines().items():
+        if name.startswith("default ("):
+            continue
+        say(f"  {label}: {name}")
+        try:
+            flagged, _, sec = run_outlier_pipeline(cloud, stages)
+        except Exception as exc:  # e.g. temporal on a file without gps_time
+            yield name, None, f"{type(exc).__name__}: {exc}"
+            continue
+        yield name, flagged, sec
+    for name, fn in baselines().items():
+        say(f"  {label}: {name}")
+        start = time.perf_counter()
+        try:
+            flagged = fn(cloud)
+        except Exception as exc:  # a baseline with another signature must not end the run
+            yield name, None, f"{type(exc).__name__}: {exc}"
+            continue
+        yield name, flagged, time.perf_counter() - start
+
+
+def bench_wads(folder: Path, report: Report, say: Print) -> None:
+    """Section 3: falling snow; precision, recall and F1 pooled over the frames."""
+    from algorithms.metrics import outlier_confusion
+    from lidar_outliers.lasio import inspect_las, read_cloud
+
+    pairs = _labelled_files(folder)
+    if not pairs:
+        return
+    pooled: dict[str, list] = {}
+    for path, truth_path in pairs:
+        cloud = read_cloud(path)
+        cloud.classification[:] = 0
+        with np.load(truth_path) as t:
+            truth = np.asarray(t["is_outlier"], dtype=bool)
+        facts = inspect_las(path)
+        for name, flagged, sec in _all_methods(cloud, say, path.stem, facts):
+            entry = pooled.setdefault(name, [[], [], 0.0, None])
+            if flagged is None:
+                entry[3] = sec
+                continue
+            entry[0].append(truth)
+            entry[1].append(flagged)
+            entry[2] += sec
+    report.lines += [
+        "## WADS: falling snow",
+        "",
+        f"{len(pairs)} frame(s) of `{folder}`, pooled; snow (label 110) is the outlier class. "
+        "Issue 5's target: F1 >= 0.92 (DROR reaches 0.85 at its best setting).",
+        "",
+        "| method | precision % | recall % | F1 | seconds |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
+    numbers = {}
+    for name, (ts, fs, sec, error) in pooled.items():
+        if not ts:
+            report.lines.append(_row([name, "—", "—", "—", f"failed: {error}"]))
+            continue
+        conf = outlier_confusion(np.concatenate(ts), np.concatenate(fs))
+        numbers[name] = conf
+        report.lines.append(_row([name, _pct(conf["precision"]), _pct(conf["recall"]),
+                                  _f(conf["f1"]), f"{sec:.1f}"]))
+    report.lines.append("")
+    report.numbers["wads"] = numbers
+
+
+def bench_airborne(folder: Path, report: Report, say: Print) -> None:
+    """Section 4: recall on the ``gross`` points, false alarms on the unlabelled points."""
+    from lidar_outliers.lasio import inspect_las, read_cloud
+
+    pairs = _labelled_files(folder)
+    if not pairs:
+        return
+    report.lines += [
+        "## Airborne gross outliers",
+        "",
+        f"{', '.join(p.name for p, _ in pairs)}: recall on the `gross` points and false alarms "
+        "on the points not labelled at all (classification reset first). Issue 5's target: "
+        "recall >= 95 %, false alarms <= 0.1 %.",
+        "",
+        "| method | gross found | recall % | false alarms | % of unlabelled | seconds |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    numbers: dict[str, Any] = {}
+    for path, truth_path in pairs:
+        cloud = read_cloud(path)
+        cloud.classification[:] = 0
+        with np.load(truth_path) as t:
+            gross = np.asarray(t["gross"], dtype=bool)
+            labelled = np.asarray(t["is_outlier"], dtype=bool)
+        facts = inspect_las(path)
+        for name, flagged, sec in _all_methods(cloud, say, path.stem, facts):
+            if flagged is None:
+                report.lines.append(_row([name, "—", "—", "—", "—", f"failed: {sec}"]))
+                continue
+            found = int(np.count_nonzero(flagged & gross))
+            fa = int(np.count_nonzero(flagged & ~labelled))
+            recall = found / max(int(gross.sum()), 1)
+            fa_pct = 100.0 * fa / max(int((~labelled).sum()), 1)
+            numbers[f"{path.stem}:{name}"] = {"recall": recall, "false_alarm_pct": fa_pct}
+            report.lines.append(_row([name, f"{found} / {int(gross.sum())}", _pct(recall),
+                                      f"{fa:,}", f"{fa_pct:.3f}", f"{sec:.1f}"]))
+    report.lines.append("")
+    report.numbers["airborne"] = numbers
+
+
+# --------------------------------------------------------------------------- speed
+
+
+def measure_speed(detector: str, path: Path) -> dict[str, Any]:
+    """Run one detector on one file in this process: points, seconds and memory.
+
+    A warm-up run on the first 2,000 points comes first so numba compilation is not timed.
+    Memory: ``rss_before_mb`` is the resident set once the cloud is read, ``run_peak_rss_mb``
+    the largest resident set sampled (every 5 ms) during the timed run, ``peak_rss_mb`` the
+    process's high-water mark (getrusage; reading the file may set it).
+    """
+    import threading
+
+    import psutil
+
+    from lidar_outliers.detectors import DETECTORS
+    from lidar_outliers.lasio import read_cloud
+
+    spec = DETECTORS[detector]
+    cloud = read_cloud(path)
+    params = spec.params_model()
+    spec.run(cloud.subset(np.arange(min(2000, len(cloud)))), params)
+    proc = psutil.Process()
+    rss_before = proc.memory_info().rss / 2**20
+    peak = [rss_before]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(0.005):
+            peak[0] = max(peak[0], proc.memory_info().rss / 2**20)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    start = time.perf_counter()
+    cpu = time.process_time()
+    try:
+        spec.run(cloud, params)
+    finally:
+        seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+        done.set()
+        sampler.join()
+    return {
+        "detector": detector,
+        "points": len(cloud),
+        "seconds": seconds,
+        "cpu_seconds": cpu,
+        "rss_before_mb": rss_before,
+        "run_peak_rss_mb": max(peak[0], proc.memory_info().rss / 2**20),
+        "peak_rss_mb": _max_rss_mb(resource.RUSAGE_SELF),
+    }
+
+
+def _max_rss_mb(who: int) -> float:
+    return resource.getrusage(who).ru_maxrss / 1024.0  # Linux reports kilobytes
+
+
+def bench_speed(path: Path, report: Report, say: Print) -> None:
+    """Section 5: one fresh subprocess per detector on cloud A (so RSS peaks do not mix)."""
+    from lidar_outliers.detectors import DETECTORS
+
+    rows = []
+    for name in DETECTORS:
+        say(f"  speed: {name}")
+        proc = subprocess.run(
+            [sys.executable, "-m", "lidar_outliers.tools.bench", "speed-worker", name, str(path)],
+            capture_output=True, text=True, env={**os.environ, "PYTHONPATH": _project_root()},
+        )
+        if proc.returncode != 0:
+            tail = (proc.stderr.strip().splitlines() or ["failed"])[-1]
+            rows.append(_row([name, "—", "—", "—", "—", "—", "—", f"failed: {tail}"]))
+            continue
+        m = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(_row([
+            name, f"{m['points']:,}", f"{m['seconds']:.2f}",
+            f"{m['points'] / max(m['seconds'], 1e-9):,.0f}", f"{m['rss_before_mb']:.0f}",
+            f"{m['run_peak_rss_mb']:.0f}",
+            f"{m['run_peak_rss_mb'] - m['rss_before_mb']:.0f}", f"{m['peak_rss_mb']:.0f}",
+        ]))
+        report.numbers.setdefault("speed", {})[name] = m
+    report.lines += [
+        "## Speed on cloud A",
+        "",
+        f"`{path.name}` ({_cpu_note()}); each detector in its own subprocess after a warm-up "
+        "on 2,000 points (numba compiled). RSS read = resident set with the cloud loaded; run "
+        "peak = largest resident set sampled every 5 ms while the detector ran; added = the "
+        "difference (the detector's own working memory); high-water = the subprocess's "
+        "getrusage maximum (reading the file may set it).",
+        "",
+        "| detector | points | seconds | points/s | RSS read MB | run peak MB | added MB | "
+        "high-water MB |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        *rows,
+        "",
+    ]
+
+
+def _project_root() -> str:
+    root = str(Path(__file__).resolve().parents[2])
+    old = os.environ.get("PYTHONPATH")
+    return root if not old else f"{root}{os.pathsep}{old}"
+
+
+def _cpu_note() -> str:
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = float("nan")
+    return f"{os.cpu_count()} CPU(s), load average {load:.1f} at the start"
+
+
+# --------------------------------------------------------------------------- the whole run
+
+
+def default_folder(name: str, quick: bool) -> Path | None:
+    """The shared data folder ``name`` when present (not in quick mode, which stays short)."""
+    folder = SHARED_DATA / name
+    return folder if folder.is_dir() and not quick else None
+
+
+def run_bench(cfg: BenchConfig, say: Print = print) -> Report:
+    report = Report()
+    report.lines += [
+        "# lidar-outliers benchmark",
+        "",
+        f"Command: `{cfg.command or 'lidar-outliers bench'}`",
+        "",
+    ]
+    start = time.perf_counter()
+    say("simulated clouds")
+    a_paths = bench_simulated(cfg, report, say)
+    for label, folder, fn in (("ISPRS", cfg.isprs, bench_isprs), ("WADS", cfg.wads, bench_wads),
+                              ("airborne", cfg.airborne, bench_airborne)):
+        if folder is not None:
+            say(label)
+            fn(folder, report, say)
+    if cfg.speed and a_paths:
+        say("speed")
+        bench_speed(a_paths["0"], report, say)
+    report.lines.append(f"Total benchmark time: {time.perf_counter() - start:.0f} s.")
+    return report
+
+
+def _speed_worker(argv: list[str]) -> int:
+    print(json.dumps(measure_speed(argv[0], Path(argv[1]))))
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) >= 4 and sys.argv[1] == "speed-worker":
+        sys.exit(_speed_worker(sys.argv[2:]))
+    sys.exit("usage: python -m lidar_outliers.tools.bench speed-worker DETECTOR FILE")

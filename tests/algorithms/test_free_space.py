@@ -1,0 +1,123 @@
+"""free_space: the grid walk against a brute-force beam x point test, origins, and a scene."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from algorithms.free_space import (
+    detect_free_space,
+    ray_point_test,
+    scanner_origins,
+    see_through_counts,
+)
+from lidar_outliers.errors import ParameterError
+
+
+def slow_test(o: np.ndarray, p: np.ndarray, q: np.ndarray, radius: float, margin: float) -> bool:
+    """Closest approach of the line o -> p to q, written with an explicit projection matrix."""
+    d = (p - o) / np.linalg.norm(p - o)
+    s = d @ (q - o)
+    perp = (np.eye(3) - np.outer(d, d)) @ (q - o)
+    return bool(0 < s < np.linalg.norm(p - o) - margin and perp @ perp < radius**2)
+
+
+def slow_counts(xyz: np.ndarray, origin: np.ndarray, radius: float, margin: float) -> np.ndarray:
+    counts = np.zeros(len(xyz), dtype=int)
+    for i in range(len(xyz)):
+        for j in range(len(xyz)):
+            if i != j and slow_test(origin[i], xyz[i], xyz[j], radius, margin):
+                counts[j] += 1
+    return counts
+
+
+def wall_scene(rng: np.random.Generator, n_beams: int = 400):
+    """Beams from a scanner moving along x at z = 2 onto a wall at y = 5, plus floating points.
+
+    Returns xyz, origin and the index of the floating points (placed on earlier beams' paths,
+    as returns from droplets at another time).
+    """
+    t = np.sort(rng.uniform(0, 1, n_beams))
+    origin = np.column_stack([4 * t, np.zeros(n_beams), np.full(n_beams, 2.0)])
+    target = np.column_stack([rng.uniform(0, 4, n_beams), np.full(n_beams, 5.0),
+                              rng.uniform(0, 3, n_beams)])
+    floating = []
+    for i in rng.choice(n_beams, 5, replace=False):
+        floating.append(origin[i] + 0.5 * (target[i] - origin[i]))
+    n_f = len(floating)
+    f_origin = origin[:n_f] + [0.0, 0.0, 0.5]  # seen by other beams, from elsewhere
+    xyz = np.vstack([target, floating])
+    org = np.vstack([origin, f_origin])
+    return xyz, org, np.arange(n_beams, n_beams + n_f)
+
+
+def test_ray_point_test_matches_projection():
+    rng = np.random.default_rng(1)
+    for _ in range(2000):
+        o, p = rng.normal(size=3), rng.normal(size=3) * 3
+        q = o + rng.uniform(-0.2, 1.2) * (p - o) + rng.normal(size=3) * 0.05
+        assert ray_point_test(o, p, q, 0.05, 0.1) == slow_test(o, p, q, 0.05, 0.1)
+
+
+@pytest.mark.parametrize("cell", [0.1, 0.37, 2.0])
+def test_grid_walk_equals_brute_force(cell):
+    rng = np.random.default_rng(2)
+    n = 300
+    origin = rng.uniform(-1, 1, (n, 3)) + [0, 0, 3]
+    xyz = rng.uniform(-1.5, 1.5, (n, 3))
+    # put points on the paths of other beams so that the counts are not all zero
+    for i in range(0, n, 3):
+        j = (i + 1) % n
+        xyz[i] = origin[j] + rng.uniform(0.2, 0.8) * (xyz[j] - origin[j])
+    fast = see_through_counts(xyz, origin, radius=0.05, margin=0.1, cell=cell)
+    slow = slow_counts(xyz, origin, 0.05, 0.1)
+    assert slow.sum() > 50
+    np.testing.assert_array_equal(fast, slow)
+
+
+def test_floating_points_found_and_wall_clean():
+    rng = np.random.default_rng(3)
+    xyz, origin, floating = wall_scene(rng)
+    res = detect_free_space(xyz, origin, radius=0.01)
+    assert res.flagged[floating].all()
+    assert not res.flagged[: floating[0]].any()
+
+
+def test_shift_invariance():
+    rng = np.random.default_rng(4)
+    xyz, origin, _ = wall_scene(rng)
+    shift = np.array([5e5, 5e6, 100.0])
+    a = detect_free_space(xyz, origin, radius=0.01)
+    b = detect_free_space(xyz + shift, origin + shift, radius=0.01)
+    np.testing.assert_array_equal(a.score, b.score)
+
+
+def test_scanner_origins_straight_drive_and_stop():
+    # drive +x at 2 m/s for 1 s, stop 1 s, drive on
+    t = np.arange(0.0, 3.0, 0.01)
+    x = np.where(t < 1, 2 * t, np.where(t < 2, 2.0, 2 + 2 * (t - 2)))
+    traj = np.column_stack([t, x, np.full_like(t, 1.0), np.full_like(t, 2.0)])
+    arms = {1: (-0.6, 0.45, 0.1), 2: (-0.6, -0.45, 0.0)}
+    times = np.array([0.5, 1.5, 2.5, 0.5])
+    src = np.array([1, 1, 2, 2])
+    o = scanner_origins(times, src, traj, arms)
+    expect = np.array([[1.0 - 0.6, 1.45, 2.1], [2.0 - 0.6, 1.45, 2.1],
+                       [3.0 - 0.6, 0.55, 2.0], [1.0 - 0.6, 0.55, 2.0]])
+    np.testing.assert_allclose(o, expect, atol=1e-9)
+    back = traj.copy()
+    back[:, 1] = -back[:, 1]  # driving -x: forward is -x and left is -y
+    o = scanner_origins(np.array([0.5]), np.array([1]), back, arms)
+    np.testing.assert_allclose(o, [[-1.0 + 0.6, 1.0 - 0.45, 2.1]], atol=1e-9)
+
+
+def test_bad_input_is_refused():
+    with pytest.raises(ParameterError, match="shape"):
+        detect_free_space(np.zeros((4, 3)), np.zeros((3, 3)))
+    with pytest.raises(ParameterError, match="NaN"):
+        detect_free_space(np.full((4, 3), np.nan), np.zeros((4, 3)))
+    with pytest.raises(ParameterError, match="radius"):
+        detect_free_space(np.zeros((4, 3)), np.ones((4, 3)), radius=0.0)
+    with pytest.raises(ParameterError, match="trajectory"):
+        scanner_origins(np.zeros(2), np.ones(2), np.zeros((1, 4)), {})
+    with pytest.raises(ParameterError, match="increase"):
+        scanner_origins(np.zeros(2), np.ones(2), np.zeros((3, 4)), {})

@@ -1,0 +1,223 @@
+"""height_field: the numba kernels against slow explicit-matrix references, and scene properties."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from algorithms.height_field import (
+    MIN_HALF_POINTS,
+    ONE_SIDED_NZ,
+    all_terms,
+    detect_height_field,
+    height_field_fit,
+    neighbours,
+    scores_from_terms,
+)
+from lidar_outliers.errors import ParameterError
+
+# --------------------------------------------------------------------------------------------
+# Slow references, straight from the formulas
+
+
+def slow_fit(uvw: np.ndarray, p: np.ndarray) -> tuple[float, float, float]:
+    """w = a + b u + c v by lstsq; residual of p, leverage x_p^T (X^T X)^-1 x_p, rms."""
+    x = np.column_stack([np.ones(len(uvw)), uvw[:, 0], uvw[:, 1]])
+    beta, *_ = np.linalg.lstsq(x, uvw[:, 2], rcond=None)
+    xp = np.array([1.0, p[0], p[1]])
+    lev = xp @ np.linalg.inv(x.T @ x) @ xp
+    rss = np.sum((uvw[:, 2] - x @ beta) ** 2)
+    return p[2] - xp @ beta, lev, np.sqrt(rss / (len(uvw) - 3))
+
+
+def slow_terms(xyz: np.ndarray, nbr_row: np.ndarray, i: int) -> np.ndarray:
+    """(5, 4) terms of point i: explicit frame, explicit fits, halves by coordinate sign."""
+    idx = [j for j in nbr_row if j != i and j >= 0]
+    pts = xyz[idx]
+    c = pts.mean(axis=0)
+    scatter = sum(np.outer(q - c, q - c) for q in pts)
+    _, vec = np.linalg.eigh(scatter)
+    w = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]
+    frame = np.column_stack([vec[:, 2], vec[:, 1], w])  # u, v, w
+    uvw = (pts - c) @ frame
+    p = (xyz[i] - c) @ frame
+    out = np.full((5, 4), np.nan)
+    out[0, :3] = slow_fit(uvw, p)
+    for f, (axis, sign) in enumerate([(0, 1), (0, -1), (1, 1), (1, -1)]):
+        half = uvw[sign * (uvw[:, axis] - p[axis]) > 0]
+        if len(half) >= MIN_HALF_POINTS:
+            out[f + 1, :3] = slow_fit(half, p)
+    out[:, 3] = w[2]
+    return out
+
+
+def slow_score(terms: np.ndarray, sigma: float, rms_weight: float, nz: float,
+               half_gate: float, max_leverage: float) -> float:
+    def term(r, lev, rms, wz):
+        if np.isnan(r) or lev > max_leverage:
+            return np.inf
+        r = 0.0 if (r < 0 and wz >= nz) else r
+        return max(abs(r) / (sigma * np.sqrt(1 + lev)), rms_weight * rms / sigma)
+
+    fits = terms if not terms[0, 2] <= half_gate * sigma else terms[:1]
+    best = min(term(*f) for f in fits)
+    return best if np.isfinite(best) else np.nan
+
+
+def _sorted_halves(terms: np.ndarray) -> np.ndarray:
+    """The u/v axes' signs are arbitrary, so the four halves are compared as a set."""
+    halves = np.nan_to_num(terms[1:5, :3], nan=-1.0)
+    return halves[np.lexsort(halves.T[::-1])]
+
+
+# --------------------------------------------------------------------------------------------
+# Scenes
+
+
+def rough_road(rng: np.random.Generator, size: float = 3.0, spacing: float = 0.02,
+               noise: float = 0.002) -> np.ndarray:
+    """Jittered grid on a crowned, graded road with mm texture and Gaussian noise."""
+    g = np.arange(0.0, size, spacing)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    x = x + rng.uniform(-0.3, 0.3, x.size) * spacing
+    y = y + rng.uniform(-0.3, 0.3, y.size) * spacing
+    z = 0.005 * x - 0.01 * (y - size / 2) ** 2 + 0.001 * np.sin(x / 0.05) * np.cos(y / 0.07)
+    return np.column_stack([x, y, z + rng.normal(0.0, noise, x.size)])
+
+
+def road_with_curb_and_lid(rng: np.random.Generator) -> np.ndarray:
+    """A road whose y > 2.2 half is a 15 cm curb/sidewalk, with a 2 cm raised lid of r = 0.3 m."""
+    xyz = rough_road(rng)
+    x, y = xyz[:, 0], xyz[:, 1]
+    xyz[y > 2.2, 2] += 0.15
+    xyz[(x - 1.2) ** 2 + (y - 1.2) ** 2 < 0.3**2, 2] += 0.02
+    # the curb face: a vertical strip of points between the road and the sidewalk
+    xf = np.arange(0.0, 3.0, 0.02)
+    zf = np.arange(0.01, 0.15, 0.02)
+    fx, fz = (a.ravel() for a in np.meshgrid(xf, zf))
+    base = 0.005 * fx - 0.01 * (2.2 - 1.5) ** 2
+    face = np.column_stack([fx, np.full(fx.size, 2.2) + rng.normal(0, 0.002, fx.size),
+                            base + fz])
+    return np.vstack([xyz, face])
+
+
+# --------------------------------------------------------------------------------------------
+# Kernels against the references
+
+
+def test_height_field_fit_matches_lstsq():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        m = int(rng.integers(6, 40))
+        uvw = rng.normal(size=(m, 3)) * [0.1, 0.05, 0.003]
+        p = rng.normal(size=3) * [0.05, 0.05, 0.01]
+        fast = height_field_fit(uvw, np.arange(m), m, p[0], p[1], p[2])
+        np.testing.assert_allclose(fast, slow_fit(uvw, p), rtol=1e-9, atol=1e-15)
+
+
+def test_collinear_patch_is_singular():
+    uvw = np.column_stack([np.linspace(0, 1, 10), np.zeros(10), np.zeros(10)])
+    assert np.isnan(height_field_fit(uvw, np.arange(10), 10, 0.5, 0.0, 0.0)[0])
+
+
+def test_all_terms_match_explicit_reference():
+    rng = np.random.default_rng(2)
+    xyz = rough_road(rng, size=0.6)
+    xyz = np.vstack([xyz, [[0.3, 0.3, 0.05]], rng.normal(0.3, 0.05, (20, 3))])
+    nbr = neighbours(xyz, 16)
+    terms = all_terms(xyz, nbr)
+    for i in rng.choice(len(xyz), 60, replace=False).tolist() + [len(xyz) - 21]:
+        ref = slow_terms(xyz, nbr[i], i)
+        np.testing.assert_allclose(terms[i, 0], ref[0], rtol=1e-7, atol=1e-12)
+        np.testing.assert_allclose(_sorted_halves(terms[i]), _sorted_halves(ref), rtol=1e-7,
+                                   atol=1e-12)
+
+
+def test_scores_match_slow_loop():
+    rng = np.random.default_rng(3)
+    terms = rng.normal(size=(200, 5, 4)) * [0.01, 0.0, 0.003, 1.0]
+    terms[:, :, 2] = np.abs(terms[:, :, 2])
+    terms[:, :, 1] = rng.uniform(0, 2, (200, 5))
+    terms[:, :, 3] = rng.uniform(-1, 1, (200, 1))
+    terms[rng.random((200, 5)) < 0.3, 0] = np.nan
+    terms[0, :, 0] = np.nan
+    terms[rng.random((200, 5)) < 0.1, 1] = 50.0  # beyond the leverage limit
+    fast = scores_from_terms(terms, 0.002, 0.5, ONE_SIDED_NZ, 2.0, 10.0)
+    slow = np.array([slow_score(t, 0.002, 0.5, ONE_SIDED_NZ, 2.0, 10.0) for t in terms])
+    np.testing.assert_allclose(fast, slow, rtol=1e-12)
+    assert np.isnan(fast[0])
+    assert (terms[:, 0, 2] <= 0.004).any() and (terms[:, 0, 2] > 0.004).any()  # both branches
+
+
+# --------------------------------------------------------------------------------------------
+# Properties on synthetic scenes
+
+
+def test_floating_clump_above_a_road_is_found():
+    rng = np.random.default_rng(4)
+    road = rough_road(rng)
+    clump = np.column_stack([rng.uniform(1.0, 1.6, 150), rng.uniform(1.0, 1.6, 150),
+                             rng.uniform(0.1, 0.6, 150)])
+    res = detect_height_field(np.vstack([road, clump]))
+    assert res.flagged[len(road):].mean() >= 0.8  # 86 % here: clumped droplets hide a few
+    assert res.flagged[: len(road)].sum() == 0
+
+
+def test_rough_surface_with_curb_and_lid_raises_nothing():
+    rng = np.random.default_rng(5)
+    xyz = road_with_curb_and_lid(rng)
+    res = detect_height_field(xyz)
+    assert res.info["points_tested"] == len(xyz)
+    assert res.flagged.sum() == 0, xyz[res.flagged]
+
+
+def test_near_surface_spike_is_one_sided():
+    rng = np.random.default_rng(6)
+    road = rough_road(rng)
+    spikes = np.array([[1.5, 1.5, 0.0], [2.0, 0.7, 0.0], [0.8, 2.0, 0.0], [2.3, 2.3, 0.0]])
+    for p in spikes:
+        near = np.argmin(np.sum((road[:, :2] - p[:2]) ** 2, axis=1))
+        p[2] = road[near, 2]
+    spikes[:, 2] += [0.04, 0.04, -0.04, -0.04]  # 20 sigma: half patches extrapolate (h ~ 1)
+    res = detect_height_field(np.vstack([road, spikes]))
+    assert res.flagged[-4:].tolist() == [True, True, False, False]
+    two_sided = detect_height_field(np.vstack([road, spikes]), one_sided=False)
+    assert two_sided.flagged[-4:].all()
+
+
+def test_scores_survive_large_coordinates():
+    rng = np.random.default_rng(7)
+    xyz = road_with_curb_and_lid(rng)
+    a = detect_height_field(xyz)
+    b = detect_height_field(xyz + [5e5, 5e6, 100.0])
+    np.testing.assert_allclose(a.score, b.score, rtol=1e-5, atol=1e-3)
+    assert a.info["sigma"] == pytest.approx(b.info["sigma"], rel=1e-5)
+
+
+def test_given_sigma_is_used():
+    rng = np.random.default_rng(8)
+    res = detect_height_field(rough_road(rng, size=1.0), sigma=0.01)
+    assert res.info["sigma"] == 0.01 and res.info["sigma_source"] == "given"
+
+
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [({"k": 4}, "k must"), ({"sigma": -1.0}, "sigma must"), ({"sigma": "big"}, "sigma must"),
+     ({"threshold": 0.0}, "threshold must"), ({"rms_weight": -1.0}, "rms_weight must")],
+)
+def test_bad_parameters_are_refused(kwargs, words):
+    with pytest.raises(ParameterError, match=words):
+        detect_height_field(np.zeros((50, 3)), **kwargs)
+
+
+def test_bad_arrays_are_refused():
+    with pytest.raises(ParameterError, match="shape"):
+        detect_height_field(np.zeros((5, 2)))
+    with pytest.raises(ParameterError, match="NaN"):
+        detect_height_field(np.full((5, 3), np.nan))
+
+
+def test_empty_and_tiny_clouds():
+    assert detect_height_field(np.zeros((0, 3))).score.shape == (0,)
+    res = detect_height_field(np.random.default_rng(9).normal(size=(4, 3)))
+    assert np.isnan(res.score).all() and not res.flagged.any()

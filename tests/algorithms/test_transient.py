@@ -1,0 +1,116 @@
+"""transient: the vectorised steps against per-point loops, and a scene with a moving arm."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from algorithms.transient import (
+    detect_transient,
+    floating_clusters,
+    neighbour_table,
+    persistent_points,
+)
+from lidar_outliers.errors import ParameterError
+
+
+def slow_floating(xyz, t, radius, min_dt, k):
+    """Per-point loops over explicit distance matrices (k nearest by a full sort)."""
+    n = len(xyz)
+    dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
+    nbrs = []
+    for i in range(n):
+        order = [j for j in np.argsort(dist[i], kind="stable") if j != i][:k]
+        nbrs.append([j for j in order if dist[i, j] <= radius])
+    persistent = np.array([any(abs(t[j] - t[i]) >= min_dt for j in nbrs[i]) for i in range(n)])
+    single = [i for i in range(n) if not persistent[i]]
+    # flood fill of single-epoch points with links <= radius
+    label = {}
+    for s in single:
+        if s in label:
+            continue
+        label[s] = s
+        stack = [s]
+        while stack:
+            a = stack.pop()
+            for b in single:
+                if b not in label and dist[a, b] <= radius:
+                    label[b] = s
+                    stack.append(b)
+    attached = {label[i] for i in single if any(persistent[j] for j in nbrs[i])}
+    return persistent, np.array([i in label and label[i] not in attached for i in range(n)])
+
+
+def street(rng: np.random.Generator):
+    """Ground seen on two passes (t ~ 0-1 s and 20-21 s), a box seen once (attached to the
+    ground), and a floating arm seen once: returns xyz, t and the arm's index."""
+    g = rng.uniform(0, 4, (1500, 2))
+    ground = np.column_stack([g, rng.normal(0, 0.003, 1500)])
+    t_ground = np.where(rng.random(1500) < 0.5, rng.uniform(0, 1, 1500),
+                        rng.uniform(20, 21, 1500))
+    # a box face standing on the ground, seen once (occluded on the other pass)
+    f = rng.uniform(0, 1, (300, 2))
+    face = np.column_stack([1 + f[:, 0], np.full(300, 2.0), 0.02 + 0.8 * f[:, 1]])
+    t_face = rng.uniform(0.40, 0.45, 300)
+    # an arm 1.2 m above the ground, seen once
+    s = rng.uniform(0, 1.5, 120)
+    arm = np.column_stack([np.full(120, 3.0), 0.5 + s, np.full(120, 1.2)])
+    arm += rng.normal(0, 0.01, arm.shape)
+    t_arm = rng.uniform(0.70, 0.72, 120)
+    xyz = np.vstack([ground, face, arm])
+    t = np.concatenate([t_ground, t_face, t_arm])
+    return xyz, t + 4e5, np.arange(1800, 1920)
+
+
+def test_steps_match_slow_loops():
+    rng = np.random.default_rng(1)
+    xyz, t, _ = street(rng)
+    sub = rng.choice(len(xyz), 700, replace=False)
+    xyz, t = xyz[sub], t[sub]
+    k, radius, min_dt = 12, 0.25, 0.5
+    idx, near = neighbour_table(xyz, k, radius)
+    persistent = persistent_points(t, idx, near, min_dt)
+    fast = floating_clusters(xyz, persistent, idx, near, radius)
+    slow_p, slow_f = slow_floating(xyz, t, radius, min_dt, k)
+    np.testing.assert_array_equal(persistent, slow_p)
+    np.testing.assert_array_equal(fast, slow_f)
+    assert slow_f.any() and (~slow_p).sum() > slow_f.sum()  # both kinds of single-epoch points
+
+
+def test_coincident_points_exclude_only_themselves():
+    xyz = np.zeros((5, 3))
+    idx, near = neighbour_table(xyz, 3, 0.1)
+    assert all(i not in idx[i] for i in range(5)) and near.all()
+
+
+def test_arm_is_flagged_and_occluded_face_is_not():
+    rng = np.random.default_rng(2)
+    xyz, t, arm = street(rng)
+    res = detect_transient(xyz, t, radius=0.25)
+    assert res.flagged[arm].all()
+    assert not np.delete(res.flagged, arm).any()
+    face = set(np.unique(res.score[1500:1800]))  # single epoch and attached (1), or persistent
+    assert 1.0 in face and 2.0 not in face  # where it meets the ground seen twice (0)
+
+
+def test_shift_invariance():
+    rng = np.random.default_rng(3)
+    xyz, t, _ = street(rng)
+    a = detect_transient(xyz, t, radius=0.25)
+    b = detect_transient(xyz + [5e5, 5e6, 100.0], t + 1e5, radius=0.25)
+    np.testing.assert_array_equal(a.score, b.score)
+
+
+def test_bad_input_is_refused():
+    with pytest.raises(ParameterError, match="shape"):
+        detect_transient(np.zeros((4, 3)), np.zeros(3))
+    with pytest.raises(ParameterError, match="NaN"):
+        detect_transient(np.zeros((4, 3)), np.full(4, np.nan))
+    with pytest.raises(ParameterError, match="radius"):
+        detect_transient(np.zeros((4, 3)), np.zeros(4), radius=0.0)
+
+
+def test_tiny_clouds():
+    assert detect_transient(np.zeros((0, 3)), np.zeros(0)).score.shape == (0,)
+    res = detect_transient(np.zeros((2, 3)), np.array([0.0, 10.0]))
+    assert res.score.tolist() == [0.0, 0.0]

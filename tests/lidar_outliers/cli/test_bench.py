@@ -1,0 +1,110 @@
+"""`lidar-outliers bench --quick` end to end, the registry-driven pipelines, the paper data."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from lidar_outliers.cli import main
+from lidar_outliers.detectors import DETECTORS, DetectorSpec
+from lidar_outliers.tools import bench, paper
+
+DATA = Path(__file__).resolve().parents[2] / "data"
+
+
+def _subset_las(src: Path, dst: Path, n: int) -> np.ndarray:
+    """Write n evenly strided points of src to dst (real points and header); returns the index."""
+    las = laspy.read(str(src))
+    index = np.linspace(0, len(las.points) - 1, min(n, len(las.points))).astype(int)
+    out = laspy.LasData(las.header)
+    out.points = las.points[index]
+    out.write(str(dst))
+    return index
+
+
+@pytest.fixture
+def real_folders(tmp_path):
+    """Small ISPRS and airborne folders cut from the real files in tests/data."""
+    isprs = tmp_path / "isprs"
+    isprs.mkdir()
+    _subset_las(DATA / "isprs" / "samp21.laz", isprs / "samp21.laz", 2500)
+    airborne = tmp_path / "airborne"
+    airborne.mkdir()
+    index = _subset_las(DATA / "airborne" / "laspy__append-bug.laz",
+                        airborne / "cut.laz", 6000)
+    with np.load(DATA / "airborne" / "laspy__append-bug.truth.npz") as t:
+        np.savez(airborne / "cut.truth.npz", is_outlier=t["is_outlier"][index],
+                 gross=t["gross"][index])
+    return isprs, airborne
+
+
+def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
+    isprs, airborne = real_folders
+    md, js = tmp_path / "bench.md", tmp_path / "bench.json"
+    status = main(["bench", "--quick", "--scale", "0.03", "--cache", str(tmp_path / "cache"),
+                   "--isprs", str(isprs), "--wads", "none", "--airborne", str(airborne),
+                   "--markdown", str(md), "--json", str(js)])
+    assert status == 0
+    text = md.read_text()
+    assert text.splitlines()[2].startswith("Command: `lidar-outliers bench --quick --scale 0.03")
+    for name in bench.outlier_pipelines():
+        assert f"### {name}" in text
+    # the paper's published figures sit beside ours (Table 2, cloud A: 3,414 identified)
+    assert "| No. of Outliers Identified | " in text and "3,414" in text
+    assert "## ISPRS ground-filter samples" in text and "| samp21 | 2,500 |" in text
+    assert "| **mean** |" in text
+    assert "### Recall by outlier kind" in text and "exhaust_plume" in text
+    assert "## Airborne gross outliers" in text
+    for name in DETECTORS:
+        assert any(line.startswith(f"| {name} | ") for line in text.split("## Speed")[1]
+                   .splitlines())
+    numbers = json.loads(js.read_text())
+    # pooled counts are consistent with the truth files of the cached clouds
+    cached = sorted((tmp_path / "cache").rglob("*.truth.npz"))
+    by_cond = {p.name[0]: int(np.load(p)["is_outlier"].sum()) for p in cached}
+    for name, per_cloud in numbers["simulated"]["pipelines"].items():
+        for cond, conf in per_cloud.items():
+            assert conf["outliers"] == by_cond[cond], (name, cond)
+            assert conf["outliers_identified"] + conf["outliers_missed"] == conf["outliers"]
+    speed = numbers["speed"]["temporal"]
+    assert speed["points"] > 0 and speed["peak_rss_mb"] >= speed["rss_before_mb"] > 0
+    assert speed["run_peak_rss_mb"] >= speed["rss_before_mb"]
+    # a second run reuses the cached clouds: same files, untouched
+    mtimes = {p: p.stat().st_mtime_ns for p in cached}
+    assert main(["bench", "--quick", "--scale", "0.03", "--cache", str(tmp_path / "cache"),
+                 "--isprs", "none", "--wads", "none", "--airborne", "none",
+                 "--no-speed"]) == 0
+    assert all(p.stat().st_mtime_ns == m for p, m in mtimes.items())
+
+
+def test_new_registry_detectors_join_the_benchmark(monkeypatch):
+    spec = DetectorSpec(name="newdet", params_model=DETECTORS["patch"].params_model,
+                        run=DETECTORS["patch"].run, kind="outlier", bit=64, summary="new")
+    monkeypatch.setitem(DETECTORS, "newdet", spec)
+    pipelines = bench.outlier_pipelines()
+    assert list(pipelines)[:4] == list(bench.PAPER_PIPELINES)
+    assert pipelines["newdet"] == ["newdet"]
+    assert "ground" not in pipelines
+
+
+@pytest.mark.parametrize("table", [paper.TABLE2, paper.TABLE3, paper.TABLE4, paper.TABLE5])
+def test_paper_percentages_follow_from_its_counts(table):
+    """A check of the transcription: each printed % equals the counts over Table 1's totals."""
+    for cloud, row in table.items():
+        total = paper.TABLE1[cloud]
+        pct = 100 * row["outliers_identified"] / total["outliers"]
+        assert row["pct_outliers_identified"] == pytest.approx(pct, abs=0.006)
+        flagged = row["outliers_identified"] + row["non_outliers_identified"]
+        assert row["pct_cloud_identified"] == pytest.approx(100 * flagged / total["points"],
+                                                            abs=0.006)
+
+
+def test_bad_folder_is_one_line_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "--quick", "--isprs", str(tmp_path / "missing")])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.count("\n") == 1
