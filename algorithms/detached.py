@@ -28,13 +28,36 @@ heights, so no sigma is guessed. Not in the paper (Leslar, Wang & Hu 2010); pure
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
+from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
+
+
+@dataclass(frozen=True)
+class DetachedParameters(Parameters):
+    """Airborne: small clusters lying under or over the local surface's height envelope."""
+
+    link: float = param(
+        3.0, "Metres: points closer than max(link, link_spacing x median spacing) form one "
+        "cluster.", gt=0, le=1000)
+    link_spacing: float = param(
+        4.0, "Multiple of the cloud's median nearest-neighbour distance for the link.",
+        ge=0, le=1000)
+    max_cluster: int = param(10, "Clusters of at most this many points are tested.",
+                             ge=1, le=1000)
+    k_surface: int = param(128, "Surface points (nearest in XY) for the local plane.",
+                           ge=3, le=2000)
+    below: float = param(1.0, "Metres under the lowest surface residual: outlier.",
+                         gt=0, le=1000)
+    above: float = param(10.0, "Metres over the highest surface residual: outlier.",
+                         gt=0, le=1000)
 
 _BATCH = 20_000  # candidate points per batch of plane fits (bounds memory to ~100 MB)
 
@@ -144,14 +167,9 @@ def detect_detached(
     >>> np.flatnonzero(detect_detached(pts).flagged).tolist()
     [3000, 3001]
     """
+    DetachedParameters(link=link, link_spacing=link_spacing, max_cluster=max_cluster,
+                       k_surface=k_surface, below=below, above=above)
     xyz = check_xyz(xyz)
-    for name, value in (("link", link), ("below", below), ("above", above)):
-        if not value > 0:
-            raise ValueError(f"{name} must be > 0, got {value!r}")
-    if not link_spacing >= 0:
-        raise ValueError(f"link_spacing must be >= 0, got {link_spacing!r}")
-    if max_cluster < 1 or k_surface < 3:
-        raise ValueError("max_cluster must be >= 1 and k_surface >= 3")
     local = xyz - xyz.mean(axis=0) if len(xyz) else xyz
     spacing = median_spacing(local)
     link_used = max(float(link), link_spacing * spacing)

@@ -16,11 +16,30 @@ baseline the new detectors are compared against.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
+from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
+
+ORIGIN_DOC = ("Sensor position in the file's coordinates (0, 0, 0 for a cloud stored in the "
+              "sensor frame, as spinning-sensor frames are).")
+MULTIPLIER_DOC = "Radius = multiplier x range x angular_resolution (at least min_radius)."
+
+
+@dataclass(frozen=True)
+class DrorParameters(Parameters):
+    """Baseline: dynamic-radius outlier removal (Charron et al. 2018) for spinning sensors."""
+
+    multiplier: float = param(4.0, MULTIPLIER_DOC, gt=0, le=100)
+    angular_resolution: float = param(
+        0.2, "Sensor's horizontal angular step in degrees.", gt=0, le=10)
+    min_radius: float = param(0.04, "Least search radius, metres.", ge=0, le=100)
+    k_min: int = param(2, "Fewer other points than this in the sphere: noise.", ge=1, le=1000)
+    origin: tuple[float, float, float] = param((0.0, 0.0, 0.0), ORIGIN_DOC)
 
 
 def dynamic_radius(
@@ -76,9 +95,9 @@ def detect_dror(
     >>> detect_dror(pts).flagged.tolist()
     [False, False, False, True]
     """
+    DrorParameters(multiplier=multiplier, angular_resolution=angular_resolution,
+                   min_radius=min_radius, k_min=k_min, origin=tuple(np.asarray(origin).tolist()))
     xyz = check_xyz(xyz)
-    if k_min < 1:
-        raise ValueError(f"k_min must be >= 1, got {k_min}")
     radius = dynamic_radius(
         xyz, origin, multiplier=multiplier, angular_resolution=angular_resolution,
         min_radius=min_radius,

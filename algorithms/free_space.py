@@ -32,6 +32,7 @@ import numpy as np
 from algorithms.errors import ParameterError
 from algorithms.jit import njit, prange
 from algorithms.result import DetectorResult
+from algorithms.transient import TransientParameters
 
 #: Largest number of grid cells before the cell edge is doubled (memory of the cell index).
 MAX_CELLS = 60_000_000
@@ -296,8 +297,8 @@ def detect_free_space(
                              f"and {org.shape}")
     if not (np.all(np.isfinite(arr)) and np.all(np.isfinite(org))):
         raise ParameterError("xyz or origin holds NaN or infinite values")
-    if not (radius > 0 and margin >= 0 and min_rays >= 1):
-        raise ParameterError("radius must be > 0, margin >= 0 and min_rays >= 1")
+    TransientParameters(free_space_radius=radius, free_space_margin=margin,
+                        free_space_min_rays=min_rays)
     score = see_through_counts(arr, org, radius=radius, margin=margin).astype(np.float64)
     flagged = score >= min_rays
     info = {"radius": radius, "margin": margin, "min_rays": int(min_rays), "points": len(arr),

@@ -107,8 +107,9 @@ from typing import Any
 
 import numpy as np
 
-from algorithms.errors import ParameterError
+from algorithms.checks import check_xyz
 from algorithms.jit import njit
+from algorithms.params import Parameters, param
 from algorithms.tin import delaunay, vertex_triangles
 
 #: Tolerance growth with the ground surface's grade in step 8 (metres per unit of tan(slope)).
@@ -117,6 +118,38 @@ SURFACE_SLOPE_TOLERANCE = 1.0
 MAX_OPENINGS = 16
 #: Quantile of the neighbours' z that a low outlier is compared with (step 3).
 LOW_QUANTILE = 0.25
+
+
+@dataclass(frozen=True)
+class GroundParameters(Parameters):
+    """Iterative TIN-based ground filter: step-edge triangles by slope, adjust, repeat."""
+
+    slope_threshold: float = param(
+        35.0, "Triangle slope in degrees above which it is a step edge.", gt=0, lt=90)
+    max_iterations: int = param(
+        1000, "Adjust-and-retest rounds at most (one round peels one ring off an object).",
+        ge=1, le=10000)
+    min_object_height: float = param(
+        0.5, "Metres: least rise of a step edge; points lowered by less are ground.",
+        ge=0, le=100)
+    low_outlier_depth: float = param(
+        2.0, "Metres below the lower quartile of its ~24 neighbours that makes a point a low "
+        "outlier (object).", gt=0, le=1000)
+    max_object_size: float = param(
+        25.0, "Metres: largest window of the progressive opening of the lowest-point raster; "
+        "raised ground wider than this is terrain; 0 turns the terrace check off.",
+        ge=0, le=1000)
+    terrain_slope: float = param(
+        0.2, "tan of the steepest terrain slope: the progressive opening calls a cell object "
+        "when a window of radius r lowers it by more than terrain_slope x r.", ge=0, le=10)
+    ground_tolerance: float = param(
+        0.5, "Metres: final step, a point less than this (+ 1.0 x local grade) above the "
+        "surface interpolated from the ground points is ground; 0 turns the step off.",
+        ge=0, le=100)
+    tin_cell: float = param(
+        0.05, "Metres: only the lowest point per XY cell of this size enters the TIN (thins "
+        "dense mobile clouds; airborne clouds keep every point); 0: per exact XY position.",
+        ge=0, le=10)
 
 
 @dataclass
@@ -192,10 +225,13 @@ def classify_ground(
     -------
     GroundResult
     """
-    xyz = _check_input(
-        xyz, slope_threshold, max_iterations, min_object_height, low_outlier_depth,
-        max_object_size, terrain_slope, ground_tolerance, tin_cell,
+    GroundParameters(
+        slope_threshold=slope_threshold, max_iterations=max_iterations,
+        min_object_height=min_object_height, low_outlier_depth=low_outlier_depth,
+        max_object_size=max_object_size, terrain_slope=terrain_slope,
+        ground_tolerance=ground_tolerance, tin_cell=tin_cell,
     )
+    xyz = check_xyz(xyz)
     n = xyz.shape[0]
     params = {
         "slope_threshold": float(slope_threshold),
@@ -297,41 +333,6 @@ def _empty_info(params: dict[str, Any], n: int) -> dict[str, Any]:
         "preliminary_ground_points": int(n),
         "ground_points": int(n),
     }
-
-
-def _check_input(
-    xyz: np.ndarray,
-    slope_threshold: float,
-    max_iterations: int,
-    min_object_height: float,
-    low_outlier_depth: float,
-    max_object_size: float,
-    terrain_slope: float,
-    ground_tolerance: float,
-    tin_cell: float,
-) -> np.ndarray:
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise ParameterError(f"xyz must have shape (n, 3), got {xyz.shape}")
-    if not np.all(np.isfinite(xyz)):
-        raise ParameterError("xyz holds NaN or infinite coordinates")
-    if not 0.0 < slope_threshold < 90.0:
-        raise ParameterError(f"slope_threshold must be in (0, 90) degrees, got {slope_threshold!r}")
-    if int(max_iterations) != max_iterations or max_iterations < 1:
-        raise ParameterError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
-    if not min_object_height >= 0.0:
-        raise ParameterError(f"min_object_height must be >= 0 metres, got {min_object_height!r}")
-    if not low_outlier_depth > 0.0:
-        raise ParameterError(f"low_outlier_depth must be > 0 metres, got {low_outlier_depth!r}")
-    if not max_object_size >= 0.0:
-        raise ParameterError(f"max_object_size must be >= 0 metres, got {max_object_size!r}")
-    if not terrain_slope >= 0.0:
-        raise ParameterError(f"terrain_slope must be >= 0, got {terrain_slope!r}")
-    if not ground_tolerance >= 0.0:
-        raise ParameterError(f"ground_tolerance must be >= 0 metres, got {ground_tolerance!r}")
-    if not tin_cell >= 0.0:
-        raise ParameterError(f"tin_cell must be >= 0 metres, got {tin_cell!r}")
-    return xyz
 
 
 def centre(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

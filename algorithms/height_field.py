@@ -32,12 +32,15 @@ the neighbour search is scipy's cKDTree.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Literal
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
-from algorithms.errors import ParameterError
 from algorithms.jit import njit, prange
+from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
 from algorithms.stats import MAD_TO_SIGMA
 
@@ -282,18 +285,22 @@ def neighbours(xyz: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def check_inputs(xyz: np.ndarray, k: int, sigma: float | str, threshold: float,
-                 rms_weight: float) -> np.ndarray:
-    arr = check_xyz(xyz)
-    if not 8 <= k <= 200:
-        raise ParameterError(f"k must be between 8 and 200, got {k}")
-    if sigma != "auto" and not (isinstance(sigma, int | float) and sigma > 0):
-        raise ParameterError(f"sigma must be > 0 or 'auto', got {sigma!r}")
-    if not threshold > 0:
-        raise ParameterError(f"threshold must be > 0, got {threshold!r}")
-    if not rms_weight >= 0:
-        raise ParameterError(f"rms_weight must be >= 0, got {rms_weight!r}")
-    return arr
+@dataclass(frozen=True)
+class HeightFieldParameters(Parameters):
+    """Mobile mapping: leave-one-out height fields on k neighbours and four half patches."""
+
+    k: int = param(24, "Neighbours per patch, the point excluded.", ge=8, le=200)
+    sigma: float | Literal["auto"] = param(
+        "auto", "Coordinate standard deviation in metres (> 0), or 'auto' for the MAD of the "
+        "cloud's full-patch studentised residuals (reported in the statistics).", gt=0)
+    threshold: float = param(
+        9.0, "Score (in sigmas) above which a point is flagged.", gt=0, le=1000)
+    rms_weight: float = param(
+        0.5, "Weight of a fit's own residual standard error: a patch of scattered points "
+        "cannot vouch for its members.", ge=0, le=100)
+    one_sided: bool = param(
+        True, "On ground-like patches (normal within 45 degrees of vertical) count only points "
+        "above the surface (early returns).")
 
 
 def detect_height_field(
@@ -322,7 +329,9 @@ def detect_height_field(
     DetectorResult with score (n,) (NaN where fewer than MIN_HALF_POINTS neighbours exist or every
     fit is singular), flagged = score > threshold, critical_value = threshold.
     """
-    arr = check_inputs(xyz, k, sigma, threshold, rms_weight)
+    HeightFieldParameters(k=k, sigma=sigma, threshold=threshold, rms_weight=rms_weight,
+                          one_sided=one_sided)
+    arr = check_xyz(xyz)
     n = len(arr)
     info: dict = {"k": int(k), "threshold": float(threshold), "rms_weight": float(rms_weight),
                   "one_sided": bool(one_sided), "points": int(n)}

@@ -7,11 +7,14 @@ is tested against the two-sided critical value of t(k - 9) at ``alpha``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
 from algorithms.errors import ParameterError
+from algorithms.params import Parameters, param
 from algorithms.quadric import DOF_LOSS, fit_quadrics, min_patch_size
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
@@ -28,20 +31,31 @@ FIT_MAX_ITER = 100
 FIT_TOL = 1e-7
 
 
-def check_sigma(sigma: float | np.ndarray) -> np.ndarray:
-    """sigma as a (3,) array of positive per-axis standard deviations, or ParameterError."""
-    s = np.asarray(sigma, dtype=np.float64)
-    if s.ndim > 1 or s.size not in (1, 3) or not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise ParameterError(f"sigma must be > 0 (a number or one per axis), got {sigma!r}")
-    return np.broadcast_to(s, (3,)).copy()
+#: Coordinate standard deviation: one number, or one per axis (X, Y, Z).
+Sigma = float | tuple[float, float, float]
+SIGMA_DOC = ("Coordinate standard deviation in metres, one number or one per axis (D_ii = "
+             "diag(sigma^2) in eq. 30).")
+
+
+@dataclass(frozen=True)
+class PatchParameters(Parameters):
+    """Algorithm (b): quadric (eqs. 18-31) fitted to the k nearest neighbours of each point."""
+
+    k: int = param(40, "Neighbours per patch, the point itself included.", ge=10, le=500)
+    sigma: Sigma = param(0.005, SIGMA_DOC, gt=0)
+    alpha: float = param(0.001, "Two-sided significance level.", gt=0, lt=0.5)
+
+    def check(self) -> None:
+        check_k_alpha(self.k, self.alpha)
+
+
+def sigma_axes(sigma: Sigma) -> np.ndarray:
+    """A declared sigma as a (3,) array of per-axis standard deviations."""
+    return np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,)).copy()
 
 
 def check_k_alpha(k: int, alpha: float) -> float:
     """Critical value t(k - 9) at ``alpha``; ParameterError when eq. 31 can never exceed it."""
-    if not 0.0 < alpha < 0.5:
-        raise ParameterError(f"alpha must be in (0, 0.5), got {alpha!r}")
-    if k <= DOF_LOSS:
-        raise ParameterError(f"k must be at least 10 (10 quadric parameters), got k={k}")
     crit = t_critical_value(alpha, k - DOF_LOSS)
     if not np.sqrt(k - DOF_LOSS) > crit:
         raise ParameterError(
@@ -103,8 +117,9 @@ def detect_patch(
         converge, its points are nearly collinear (no unique quadric, see
         ``algorithms.quadric.COLLINEAR_RATIO``) or n < k; flagged = score > t(k - 9).
     """
+    p = PatchParameters(k=k, sigma=sigma, alpha=alpha)
     pts = check_xyz(xyz)
-    var_sigma = check_sigma(sigma)
+    var_sigma = sigma_axes(p.sigma)
     k = int(k)
     crit = check_k_alpha(k, float(alpha))
     n = pts.shape[0]

@@ -15,13 +15,15 @@ Sections run in parallel (numba; the sections are shared among the threads by si
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba
 import numpy as np
 
 from algorithms.checks import check_xyz
-from algorithms.errors import ParameterError
 from algorithms.jit import njit, prange
-from algorithms.patch import check_sigma
+from algorithms.params import Parameters, param
+from algorithms.patch import SIGMA_DOC, Sigma, sigma_axes
 from algorithms.quadric import DOF_LOSS, N_PARAMS, fit_masked, min_patch_size
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
@@ -29,6 +31,16 @@ from algorithms.tiles import grid_cells, group_by_cell
 
 FIT_MAX_ITER = 100
 FIT_TOL = 1e-8
+
+@dataclass(frozen=True)
+class SectionParameters(Parameters):
+    """Algorithm (c): one quadric per square XY section, refitted until no outlier remains."""
+
+    section_size: float = param(5.0, "Section edge in metres.", gt=0, le=10000)
+    sigma: Sigma = param(0.005, SIGMA_DOC, gt=0)
+    alpha: float = param(0.001, "Two-sided significance level.", gt=0, lt=0.5)
+    max_iterations: int = param(10, "Refits per section at most.", ge=1, le=1000)
+
 
 # Section outcome codes (per section, for the statistics).
 _TESTED, _TOO_FEW, _NOT_CONVERGED = 0, 1, 2
@@ -175,14 +187,10 @@ def detect_section(
         flagged (n,) points removed as outliers. ``critical_value`` is t(n - 9) for the median
         section size (each section uses its own n).
     """
+    SectionParameters(section_size=section_size, sigma=sigma, alpha=alpha,
+                      max_iterations=max_iterations)
     pts = check_xyz(xyz)
-    var = check_sigma(sigma) ** 2
-    if not 0.0 < alpha < 0.5:
-        raise ParameterError(f"alpha must be in (0, 0.5), got {alpha!r}")
-    if not (np.isfinite(section_size) and section_size > 0):
-        raise ParameterError(f"section_size must be > 0, got {section_size!r}")
-    if int(max_iterations) < 1:
-        raise ParameterError(f"max_iterations must be >= 1, got {max_iterations!r}")
+    var = sigma_axes(sigma) ** 2
     n = pts.shape[0]
     min_points = max(min_patch_size(alpha), DOF_LOSS + 1)
 

@@ -18,11 +18,28 @@ Not in the paper (Leslar, Wang & Hu 2010); pure numpy/scipy.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from algorithms.checks import check_xyz
-from algorithms.dror import dynamic_radius, neighbour_counts
+from algorithms.dror import MULTIPLIER_DOC, ORIGIN_DOC, dynamic_radius, neighbour_counts
+from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
+
+
+@dataclass(frozen=True)
+class SnowParameters(Parameters):
+    """Spinning sensors: falling snow = dark (low intensity) AND sparse in a dynamic radius."""
+
+    multiplier: float = param(4.0, MULTIPLIER_DOC, gt=0, le=100)
+    angular_resolution: float = param(
+        0.2, "Sensor's horizontal angular step in degrees.", gt=0, le=10)
+    min_radius: float = param(0.04, "Least search radius, metres.", ge=0, le=100)
+    k_min: int = param(4, "Fewer other points than this in the sphere: snow.", ge=1, le=1000)
+    max_intensity: float = param(
+        0.0, "Points with intensity at most this are candidates.", ge=0, le=65535)
+    origin: tuple[float, float, float] = param((0.0, 0.0, 0.0), ORIGIN_DOC)
 
 
 def detect_snow(
@@ -50,8 +67,9 @@ def detect_snow(
     intensity = np.asarray(intensity)
     if intensity.shape != (len(xyz),):
         raise ValueError(f"intensity must have shape ({len(xyz)},), got {intensity.shape}")
-    if k_min < 1:
-        raise ValueError(f"k_min must be >= 1, got {k_min}")
+    SnowParameters(multiplier=multiplier, angular_resolution=angular_resolution,
+                   min_radius=min_radius, k_min=k_min, max_intensity=max_intensity,
+                   origin=tuple(np.asarray(origin).tolist()))
     dark = intensity <= max_intensity
     radius = dynamic_radius(
         xyz, origin, multiplier=multiplier, angular_resolution=angular_resolution,

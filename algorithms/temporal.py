@@ -26,15 +26,16 @@ max_gap).
 from __future__ import annotations
 
 import math
-import numbers
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 
 from algorithms.errors import MissingDimensionError, ParameterError
+from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
 from algorithms.stats import mad_sigma, normal_critical_value
 
@@ -59,6 +60,32 @@ _PARALLEL_POINTS = 2 * _BLOCK
 
 #: Shortest run of alike consecutive windows that ``window_differences`` serves by slices.
 _MIN_RUN = 64
+
+
+@dataclass(frozen=True)
+class TemporalParameters(Parameters):
+    """Algorithm (a): moving fixed-interval smoother along scan lines (eqs. 1-17)."""
+
+    n1: int = param(5, "Points before the tested point in the window.", ge=1, le=100)
+    n2: int = param(5, "Points after the tested point in the window.", ge=1, le=100)
+    sigma: float | tuple[float, float, float] | Literal["auto"] = param(
+        "auto", "Standard deviation of each coordinate in metres (> 0; one number or one per "
+        "axis X, Y, Z), or 'auto' for a robust estimate from the data (reported in the "
+        "statistics).", gt=0)
+    alpha: float = param(0.001, "Two-sided significance level.", gt=0, lt=0.5)
+    max_gap: float | Literal["auto"] = param(
+        "auto", "Time step in seconds (> 0) above which a scan line is split into segments; "
+        "'auto' = 5 x the group's median positive time step.", gt=0)
+    group_by: Literal["point_source_id", "none"] = param(
+        "point_source_id", "Dimension that separates the scanners, or 'none'.")
+
+    def check(self) -> None:
+        if self.n1 + self.n2 < 3:
+            # A quadratic in time (eqs. 1-3) needs three neighbours besides the tested point,
+            # otherwise the point carries the whole fit and eq. 15 divides by zero.
+            raise ParameterError(
+                f"n1 + n2 must be >= 3 (a quadratic needs three neighbours to predict a point), "
+                f"got n1={self.n1}, n2={self.n2}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -571,43 +598,13 @@ class _Params:
 def _check_params(
     n1: int, n2: int, sigma: float | str | Sequence[float], alpha: float, max_gap: float | str
 ) -> _Params:
-    for name, value in (("n1", n1), ("n2", n2)):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-            raise ParameterError(f"{name} must be an integer >= 1, got {value!r}")
-    if n1 + n2 < 3:
-        raise ParameterError(
-            f"n1 + n2 must be >= 3 (a quadratic needs three neighbours to predict a point), "
-            f"got n1={n1}, n2={n2}"
-        )
-    if isinstance(alpha, bool) or not isinstance(alpha, numbers.Real) or not 0.0 < alpha < 0.5:
-        raise ParameterError(f"alpha must be in (0, 0.5), got {alpha!r}")
-    sigma_arr: np.ndarray | None = None
-    if isinstance(sigma, str):
-        if sigma != "auto":
-            raise ParameterError(f"sigma must be a number > 0 or 'auto', got {sigma!r}")
-    else:
-        try:
-            sigma_arr = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,)).copy()
-        except (TypeError, ValueError):
-            raise ParameterError(
-                f"sigma must be a number > 0, three numbers or 'auto', got {sigma!r}"
-            ) from None
-        if not np.all(np.isfinite(sigma_arr) & (sigma_arr > 0)):
-            raise ParameterError(f"sigma must be > 0 and finite, got {sigma!r}")
-    gap: float | None = None
-    if isinstance(max_gap, str):
-        if max_gap != "auto":
-            raise ParameterError(f"max_gap must be a number > 0 or 'auto', got {max_gap!r}")
-    else:
-        try:
-            gap = float(max_gap)
-        except (TypeError, ValueError):
-            raise ParameterError(
-                f"max_gap must be a number > 0 or 'auto', got {max_gap!r}"
-            ) from None
-        if not gap > 0:
-            raise ParameterError(f"max_gap must be > 0 or 'auto', got {max_gap!r}")
-    return _Params(int(n1), int(n2), float(alpha), normal_critical_value(alpha), sigma_arr, gap)
+    """The declared checks (:class:`TemporalParameters`), then sigma and max_gap resolved."""
+    p = TemporalParameters(n1=n1, n2=n2, sigma=sigma, alpha=alpha, max_gap=max_gap)
+    sigma_arr = None if p.sigma == "auto" else np.broadcast_to(
+        np.asarray(p.sigma, dtype=np.float64), (3,)).copy()
+    gap = None if p.max_gap == "auto" else float(p.max_gap)
+    return _Params(int(p.n1), int(p.n2), float(p.alpha), normal_critical_value(p.alpha),
+                   sigma_arr, gap)
 
 
 def _check_arrays(

@@ -24,13 +24,48 @@ components).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from algorithms.errors import ParameterError
+from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
+
+#: The simulator's two scanners: [point_source_id, forward, left, up] metres from the
+#: trajectory's reference point.
+SIMULATOR_LEVER_ARMS = ((1, -0.6, 0.45, 0.0), (2, -0.6, -0.45, 0.0))
+
+
+@dataclass(frozen=True)
+class TransientParameters(Parameters):
+    """Mobile mapping: single-epoch clusters attached to nothing (moving objects); with a
+    trajectory also points that other beams saw through (free-space evidence)."""
+
+    k: int = param(24, "Neighbours searched per point.", ge=1, le=200)
+    radius: float = param(
+        0.2, "Metres: neighbours this close count; clusters link at this distance.",
+        gt=0, le=100)
+    min_dt: float = param(
+        0.5, "Seconds: a neighbour recorded this much earlier or later makes a point "
+        "persistent (seen again by the other scanner or on another pass).", gt=0, le=1e6)
+    free_space_radius: float = param(
+        0.006, "With a trajectory file: metres a beam must pass within a point to see through "
+        "it (free-space evidence).", gt=0, le=10)
+    free_space_margin: float = param(
+        0.08, "With a trajectory file: metres a beam must end beyond a point to count.",
+        ge=0, le=100)
+    free_space_min_rays: int = param(
+        1, "With a trajectory file: beams that saw through a point to flag it.", ge=1, le=1000)
+    lever_arms: tuple[tuple[int, float, float, float], ...] = param(
+        SIMULATOR_LEVER_ARMS,
+        "With a trajectory file: [point_source_id, forward, left, up] metres of each scanner "
+        "from the trajectory's reference point in the vehicle frame (heading from the "
+        "trajectory's motion). Default: the simulator's two scanners (trajectory = roof point "
+        "at scanner height). Scanners not listed sit at the reference point.")
 
 #: Points per kNN batch.
 KNN_BATCH = 262_144
@@ -107,9 +142,7 @@ def detect_transient(
                              f"and {t.shape}")
     if not (np.all(np.isfinite(arr)) and np.all(np.isfinite(t))):
         raise ParameterError("xyz or gps_time holds NaN or infinite values")
-    if not (1 <= k <= 200 and radius > 0 and min_dt > 0):
-        raise ParameterError(f"need 1 <= k <= 200, radius > 0 and min_dt > 0, got k={k}, "
-                             f"radius={radius}, min_dt={min_dt}")
+    TransientParameters(k=k, radius=radius, min_dt=min_dt)
     n = len(arr)
     info = {"k": int(k), "radius": float(radius), "min_dt": float(min_dt), "points": n}
     if n < 2:
