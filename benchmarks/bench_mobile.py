@@ -3,8 +3,8 @@
     .venv/bin/python benchmarks/bench_mobile.py                      # full size, seeds 0 1 2
     .venv/bin/python benchmarks/bench_mobile.py --scale 0.2 --seeds 0  # quick look
 
-Each cloud is generated in memory by :func:`~lidar_outliers.tools.simulator.simulate` (the same physics
-as ``lidar-outliers simulate``). Detectors, all at their defaults:
+Each cloud is generated in memory by :func:`~lidar_outliers.tools.simulator.simulate`
+(the same physics as ``lidar-outliers simulate``). Detectors, all at their defaults:
 
 - ``height_field`` (:mod:`algorithms.height_field`), geometry only;
 - ``free_space`` (:mod:`algorithms.free_space`), with each point's scanner position taken

@@ -18,7 +18,8 @@ Sections (each skipped when its data is missing):
    recall and false alarms of ``detached`` per seed. Targets: recall >= 90 %, false alarms
    <= 0.05 %.
 
-Every section also names the profile :func:`~lidar_outliers.profiles.choose_profile` picks for the file.
+Every section also names the profile that :func:`~lidar_outliers.profiles.choose_profile` picks
+for the file.
 Defaults only: nothing here is tuned per file.
 """
 

@@ -6,6 +6,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from lidar_outliers.errors import MissingDimensionError
+
 
 @dataclass
 class Cloud:
@@ -23,9 +25,9 @@ class Cloud:
     intensity : (n,) uint16 or None
         Pulse return strength (the ``snow`` detector uses it); None when not read.
     trajectory : (m, 4) float64 or None
-        Optional platform path (:mod:`~lidar_outliers.trajectory`): time, then x, y, z in the same local
-        frame as ``xyz`` (file coordinates minus ``origin``); the ``transient`` detector adds
-        free-space evidence with it. A subset keeps the whole trajectory.
+        Optional platform path (:mod:`~lidar_outliers.trajectory`): time, then x, y, z in the
+        same local frame as ``xyz`` (file coordinates minus ``origin``); the ``transient``
+        detector adds free-space evidence with it. A subset keeps the whole trajectory.
     """
 
     xyz: np.ndarray
@@ -55,3 +57,16 @@ class Cloud:
         """The same points with ``trajectory`` ((m, 4): time, then x, y, z in file coordinates)
         moved into the cloud's local frame."""
         return replace(self, trajectory=trajectory - np.r_[0.0, self.origin])
+
+    def require_gps_time(self, detector: str) -> np.ndarray:
+        """The GPS times, or MissingDimensionError naming the detector that needs them."""
+        if self.gps_time is None:
+            raise MissingDimensionError(
+                f"the {detector} detector needs gps_time, which this point format does not have "
+                f"(use point format 1, 3-10, or run patch/section instead)"
+            )
+        return self.gps_time
+
+    def local_point(self, point: tuple[float, float, float]) -> np.ndarray:
+        """A point given in file coordinates (a sensor position, say) in the local frame."""
+        return np.asarray(point, dtype=np.float64) - np.asarray(self.origin, dtype=np.float64)

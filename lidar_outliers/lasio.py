@@ -34,6 +34,7 @@ from laspy.vlrs.vlrlist import VLRList
 from lidar_outliers.atomic import atomic_path
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.errors import LasFormatError
+from lidar_outliers.output import FLAGS_DIMENSION, result_dimensions, score_dimension
 
 Progress = Callable[[float, str], None]
 
@@ -53,7 +54,6 @@ _LASZIP_USER, _LASZIP_RECORD = b"laszip encoded", 22204
 #: stay below glibc's largest mmap threshold (32 MB), so freed chunks are reused from the heap
 #: instead of being mapped and zero-filled again; 1 M point chunks made a command 4 % slower.
 DEFAULT_CHUNK_POINTS = 250_000
-FLAGS_DIMENSION = "outlier_flags"
 
 
 @dataclass
@@ -407,11 +407,6 @@ def read_cloud(
 # --------------------------------------------------------------------------- writing
 
 
-def score_dimension(detector: str) -> str:
-    """Name of the float32 extra dimension that holds a detector's score."""
-    return f"{detector}_score"
-
-
 def _output_header(
     in_header: laspy.LasHeader, new_dims: list[tuple[str, type, str]]
 ) -> laspy.LasHeader:
@@ -607,15 +602,6 @@ def _is_compressed(header: laspy.LasHeader) -> bool:
     )
 
 
-def result_dimensions(detectors: list[str]) -> list[tuple[str, type, str]]:
-    """The extra dimensions of a result file: the flag bitmask and one score per detector."""
-    dims: list[tuple[str, type, str]] = [
-        (FLAGS_DIMENSION, np.uint8, "bit per outlier detector")
-    ]
-    dims += [(score_dimension(d), np.float32, f"{d} score") for d in detectors]
-    return dims
-
-
 def write_result(
     in_path: str | os.PathLike[str],
     out_path: str | os.PathLike[str],
@@ -629,7 +615,7 @@ def write_result(
     progress_span: tuple[float, float] = (0.0, 1.0),
     records: list[laspy.ScaleAwarePointRecord] | None = None,
 ) -> None:
-    """Write the input's points with ``outlier_flags`` (n,) uint8 and ``<name>_score`` (n,) float32.
+    """Write the input's points with ``outlier_flags`` (n,) and ``<name>_score`` (n,) float32.
 
     ``classification`` (n,) replaces the class of every point when given (``classify`` on);
     None leaves the classes untouched. ``records``: as ``rewrite``.

@@ -24,7 +24,8 @@ from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors import GroundResult, get_detector
 from lidar_outliers.errors import ParameterError
 from lidar_outliers.lasio import LasFacts
-from lidar_outliers.params import OUTLIER_DETECTOR_BITS, PipelineParams
+from lidar_outliers.output import FLAGS_DTYPE
+from lidar_outliers.params import FLAG_BITS, PipelineParams
 
 Progress = Callable[[float, str], None]
 
@@ -37,7 +38,7 @@ GROUND_CLASS, OTHER_CLASS = 2, 1
 class PipelineResult:
     """Outcome of a pipeline on n points.
 
-    flags : (n,) ``outlier_flags`` bitmask (:data:`lidar_outliers.params.OUTLIER_DETECTOR_BITS`).
+    flags : (n,) uint16 ``outlier_flags`` bitmask (:data:`~lidar_outliers.params.FLAG_BITS`).
     scores : name -> (n,) float32, per outlier detector that ran; NaN where untested.
     classification : (n,) uint8 with ``classify`` on, else None (classes left untouched).
     statistics : JSON-serialisable dict (see :func:`run_pipeline`).
@@ -68,8 +69,8 @@ def resolve_stages(
     """The stages to run and a statistics note on where they came from.
 
     Without a named pipeline the profile decides (``params.profile``, or for ``auto``
-    :func:`~lidar_outliers.profiles.choose_profile` on ``facts``: the file's header facts, or those of
-    the cloud; without facts ``auto`` means mobile). The note then holds ``profile``,
+    :func:`~lidar_outliers.profiles.choose_profile` on ``facts``: the file's header facts, or those
+    of the cloud; without facts ``auto`` means mobile). The note then holds ``profile``,
     ``profile_source`` (given / auto), ``profile_reason`` and the facts used.
     """
     from lidar_outliers.profiles import profile_evidence, profile_stages
@@ -143,7 +144,7 @@ def run_pipeline(
     n = len(cloud)
     fact_dict = facts.to_dict() if isinstance(facts, LasFacts) else facts
     stages, note = resolve_stages(params, cloud.gps_time, fact_dict or cloud_facts(cloud))
-    flags = np.zeros(n, dtype=np.uint8)
+    flags = np.zeros(n, dtype=FLAGS_DTYPE)
     scores: dict[str, np.ndarray] = {}
     classes = cloud.classification.astype(np.uint8, copy=True) if params.classify else None
     noise_truth, ground_truth = _reference_truth(cloud, params.reference_classes)
@@ -168,7 +169,7 @@ def run_pipeline(
             stage_stats.append(entry)
             continue
         sub = cloud if index.size == n else cloud.subset(index)
-        result = spec.run(sub, stage)
+        result = spec.run(sub, stage.parameters())
         if isinstance(result, GroundResult):
             is_ground = result.is_ground
             if classes is not None:
@@ -185,7 +186,7 @@ def run_pipeline(
 
                 entry["ground_scores"] = ground_scores(ground_truth[index], is_ground)
         else:
-            entry.update(_outlier_stage(result, spec.bit, index, flags, scores[spec.name]))
+            entry.update(_outlier_stage(result, spec.flag_bit, index, flags, scores[spec.name]))
             if noise_truth is not None:
                 from algorithms.metrics import outlier_confusion
 
@@ -232,10 +233,10 @@ def _outlier_stage(
     flagged = np.asarray(result.flagged, dtype=bool)
     if index.size == flags.size:  # every point tested (index is 0..n-1): no gathers
         score_out[:] = result.score
-        flags[flagged] |= np.uint8(bit or 0)
+        flags[flagged] |= FLAGS_DTYPE(bit or 0)
     else:
         score_out[index] = result.score
-        flags[index[flagged]] |= np.uint8(bit or 0)
+        flags[index[flagged]] |= FLAGS_DTYPE(bit or 0)
     return {
         "info": result.info,
         "points_tested": int(np.count_nonzero(result.tested)),
@@ -262,7 +263,7 @@ def _overall(flags: np.ndarray, noise_truth: np.ndarray | None) -> dict[str, Any
         "points": int(flags.size),
         "points_flagged": int(np.count_nonzero(flagged)),
         "flagged_by_bit": {
-            name: int(np.count_nonzero(flags & bit)) for name, bit in OUTLIER_DETECTOR_BITS.items()
+            name: int(np.count_nonzero(flags & bit)) for name, bit in FLAG_BITS.items()
         },
     }
     if noise_truth is not None:

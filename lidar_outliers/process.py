@@ -14,7 +14,8 @@ import numpy as np
 from lidar_outliers import lasio
 from lidar_outliers.atomic import write_json_atomic
 from lidar_outliers.errors import ParameterError
-from lidar_outliers.params import OUTLIER_DETECTOR_BITS, PipelineParams, parse_pipeline_params
+from lidar_outliers.output import result_dimensions
+from lidar_outliers.params import FLAG_BITS, PipelineParams, parse_pipeline_params
 from lidar_outliers.pipeline import Progress, check_noise_class, jsonable, run_pipeline
 from lidar_outliers.streaming import stream_temporal, temporal_only
 from lidar_outliers.trajectory import check_trajectory, describe_trajectory, read_trajectory
@@ -39,9 +40,10 @@ def process_file(
 ) -> dict[str, Any]:
     """Validate, read, run the pipeline, write the flagged cloud; return the statistics.
 
-    ``trajectory``: an optional trajectory file (:mod:`~lidar_outliers.trajectory`: lines of ``time x y z``
-    in the cloud's coordinates) or its (m, 4) array; the ``transient`` detector then also flags
-    points other beams saw through. The statistics' ``trajectory`` says whether it was used.
+    ``trajectory``: an optional trajectory file (:mod:`~lidar_outliers.trajectory`: lines of
+    ``time x y z`` in the cloud's coordinates) or its (m, 4) array; the ``transient`` detector
+    then also flags points other beams saw through. The statistics' ``trajectory`` says whether
+    it was used.
 
     ``laz=None`` writes LAZ when the input is LAZ. ``progress(fraction, message)`` is called while
     reading, per stage and while writing; whatever it raises propagates unchanged (the service
@@ -145,11 +147,11 @@ def _finish(
 ) -> dict[str, Any]:
     if traj_info is not None:
         stats["trajectory"] = jsonable(_trajectory_use(stats, traj_info))
-    detectors = [s["detector"] for s in stats["stages"] if s["detector"] in OUTLIER_DETECTOR_BITS]
+    detectors = [s["detector"] for s in stats["stages"] if s["detector"] in FLAG_BITS]
     stats["output"] = {
         "name": out_path.name,
         "compressed": compress,
-        "dimensions_added": [name for name, _, _ in lasio.result_dimensions(detectors)],
+        "dimensions_added": [name for name, _, _ in result_dimensions(detectors)],
     }
     if stats_path is not None:
         write_json_atomic(stats_path, stats)

@@ -16,8 +16,9 @@ file's header and point layout, never parameters tuned per file. Three kinds are
 ``mobile``
     Everything else (mobile mapping, terrestrial): ``transient`` (moving objects; with a
     trajectory file it also uses free-space evidence) then ``height_field`` (``height_field``
-    alone without gps_time), as :func:`~lidar_outliers.params.default_stages`. The paper's ``temporal``
-    then ``patch`` stays available by naming it (:func:`lidar_outliers.params.paper_stages`).
+    alone without gps_time), as :func:`~lidar_outliers.params.default_stages`. The paper's
+    ``temporal`` then ``patch`` stays available by naming it
+    (:func:`~lidar_outliers.params.paper_stages`).
 
 A job can also name the profile (``PipelineParams.profile``) instead of ``auto``.
 
@@ -30,7 +31,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from lidar_outliers.params import DetachedParams, SnowParams, default_stages
+from lidar_outliers.params import default_stages, stage
 
 #: Points per square metre of the XY bounding box below which a cloud is taken as airborne.
 AIRBORNE_MAX_DENSITY = 50.0
@@ -111,9 +112,9 @@ def profile_evidence(facts: Mapping[str, Any]) -> dict[str, Any]:
 def profile_stages(profile: str, has_gps_time: bool) -> list:
     """The default pipeline of a profile (a list of stage parameter models, all defaults)."""
     if profile == "spinning":
-        return [SnowParams()]
+        return [stage("snow")]
     if profile == "airborne":
-        return [DetachedParams()]
+        return [stage("detached")]
     if profile == "mobile":
         return default_stages(has_gps_time)
     raise ValueError(f"unknown profile {profile!r} (known: {', '.join(PROFILES)})")

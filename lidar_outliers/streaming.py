@@ -18,7 +18,8 @@ import numpy as np
 from lidar_outliers import lasio
 from lidar_outliers.detectors import get_detector
 from lidar_outliers.lasio import LasFacts
-from lidar_outliers.params import OUTLIER_DETECTOR_BITS, PipelineParams
+from lidar_outliers.output import FLAGS_DIMENSION, FLAGS_DTYPE, result_dimensions, score_dimension
+from lidar_outliers.params import FLAG_BITS, PipelineParams
 from lidar_outliers.pipeline import GROUND_CLASS, Progress, jsonable
 
 
@@ -49,7 +50,7 @@ def stream_temporal(
     stream = TemporalStream(n1=stage.n1, n2=stage.n2, sigma=stage.sigma, alpha=stage.alpha,
                             max_gap=stage.max_gap)
     critical = stream.critical_value
-    bit = np.uint8(spec.bit)
+    bit = FLAGS_DTYPE(spec.flag_bit)
     counts = _StreamCounts()
     started = time.perf_counter()
     pending: list[_Pending] = []
@@ -59,7 +60,7 @@ def stream_temporal(
         scales = np.asarray(reader.header.scales)
     n = facts.points
     try:
-        with lasio.ResultWriter(in_path, out_path, lasio.result_dimensions(["temporal"]),
+        with lasio.ResultWriter(in_path, out_path, result_dimensions(["temporal"]),
                                 laz=compress) as writer:
             start = 0
             for chunk in lasio.iter_chunks(in_path, chunk_points):
@@ -96,7 +97,7 @@ def stream_temporal(
         "points": n,
         "points_flagged": counts.flagged,
         "flagged_by_bit": {name: counts.flagged if name == "temporal" else 0
-                           for name in OUTLIER_DETECTOR_BITS},
+                           for name in FLAG_BITS},
     }
     if noise_ref:
         confusion = counts.confusion()
@@ -189,7 +190,7 @@ def _assign(pending: list[_Pending], index: np.ndarray, score: np.ndarray) -> No
 
 def _flush(
     pending: list[_Pending], writer: lasio.ResultWriter, params: PipelineParams, critical: float,
-    bit: np.uint8, counts: _StreamCounts, *, final: bool,
+    bit: np.unsignedinteger, counts: _StreamCounts, *, final: bool,
 ) -> None:
     """Write the leading chunks whose points all have their final score."""
     noise_ref = [c for c in params.reference_classes or [] if c != GROUND_CLASS]
@@ -197,8 +198,8 @@ def _flush(
         p = pending.pop(0)
         flagged = p.score > critical
         record = p.record
-        record[lasio.FLAGS_DIMENSION] = np.where(flagged, bit, np.uint8(0))
-        record[lasio.score_dimension("temporal")] = p.score
+        record[FLAGS_DIMENSION] = np.where(flagged, bit, FLAGS_DTYPE(0))
+        record[score_dimension("temporal")] = p.score
         classes = np.asarray(record.classification)
         if noise_ref:
             truth = np.isin(classes, noise_ref)

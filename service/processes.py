@@ -1,5 +1,6 @@
-"""Process descriptions (OGC API - Processes) and input validation, generated from the pydantic
-parameter models in ``lidar_outliers/params.py`` so the API, the CLI and the worker share one contract.
+"""Process descriptions (OGC API - Processes) and input validation, generated from the detector
+declarations (:mod:`lidar_outliers.detectors`) so the API, the CLI and the worker share one
+contract.
 
 A single-detector process takes that detector's parameters plus the pipeline-level fields
 (``classify``, ``noise_class``, ``reference_classes``); the ``pipeline`` process takes
@@ -13,7 +14,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, ValidationError, create_model
 
-from lidar_outliers.params import STAGE_MODELS, PipelineParams
+from lidar_outliers.detectors import DETECTORS
+from lidar_outliers.params import PipelineParams
 from service.problems import Problem
 
 PIPELINE = "pipeline"
@@ -25,17 +27,8 @@ TRAJECTORY_INPUT = "trajectory"
 
 
 def stage_models() -> dict[str, type[BaseModel]]:
-    """Detectors by name: the registry of ``lidar_outliers.detectors`` when present, else the models."""
-    try:
-        from lidar_outliers.detectors import DETECTORS
-    except ImportError:
-        return dict(STAGE_MODELS)
-    models: dict[str, type[BaseModel]] = {}
-    for name, spec in DETECTORS.items():
-        model = getattr(spec, "params_model", None)
-        if isinstance(model, type) and issubclass(model, BaseModel):
-            models[name] = model
-    return models | {k: v for k, v in STAGE_MODELS.items() if k not in models}
+    """Each registered detector's stage model, by name."""
+    return {name: detector.model for name, detector in DETECTORS.items()}
 
 
 def process_ids() -> list[str]:
@@ -62,7 +55,7 @@ def inputs_model(process_id: str) -> type[BaseModel]:
         fields[name] = (info.annotation, info)
     model = create_model(
         f"{stage.__name__.removesuffix('Params')}Inputs",
-        __config__=ConfigDict(extra="forbid"),
+        __config__=ConfigDict(extra="forbid", allow_inf_nan=False),
         __doc__=stage.__doc__,
         **fields,
     )
@@ -191,19 +184,13 @@ def summary(process_id: str, base_url: str = "") -> dict[str, Any]:
 
 
 def preflight(params: PipelineParams, point_format: int) -> None:
-    """Refuse before queueing what the worker would refuse at once: a patch ``k`` too small for
-    its ``alpha``, a detector twice in a pipeline, a noise class the point format cannot hold."""
+    """Refuse before queueing what the worker would refuse at once: a detector twice in a
+    pipeline, a noise class the point format cannot hold."""
     from lidar_outliers.errors import ParameterError
+    from lidar_outliers.pipeline import check_noise_class, resolve_stages
 
     try:
-        from lidar_outliers.pipeline import check_noise_class, resolve_stages
-
         resolve_stages(params, None)
-        for stage in params.pipeline or []:
-            if stage.detector == "patch":
-                from algorithms.patch import check_k_alpha
-
-                check_k_alpha(stage.k, stage.alpha)
         check_noise_class(params, point_format)
     except ParameterError as exc:
         raise Problem(422, "invalid-parameter", str(exc),

@@ -42,7 +42,7 @@ def _stage_parser(name: str) -> argparse.ArgumentParser:
     """A parser for one ``--detector NAME`` group; values stay text, pydantic converts them."""
     spec = get_detector(name)
     parser = argparse.ArgumentParser(prog=f"--detector {name}", add_help=False)
-    for field in spec.params_model.model_fields:
+    for field in spec.model.model_fields:
         if field != "detector":
             parser.add_argument(*_option_names(field), dest=field, default=argparse.SUPPRESS)
     return parser
@@ -52,7 +52,7 @@ def _all_stage_options() -> dict[str, list[str]]:
     """Option string -> detectors that accept it."""
     owners: dict[str, list[str]] = {}
     for name, spec in DETECTORS.items():
-        for field in spec.params_model.model_fields:
+        for field in spec.model.model_fields:
             if field != "detector":
                 for option in _option_names(field):
                     owners.setdefault(option, []).append(name)
@@ -108,7 +108,7 @@ def _epilog() -> str:
     for name, spec in DETECTORS.items():
         opts = [
             f"{_option_names(f)[0]} (default {info.default})"
-            for f, info in spec.params_model.model_fields.items()
+            for f, info in spec.model.model_fields.items()
             if f != "detector"
         ]
         lines.append(f"  --detector {name}: " + ", ".join(opts))

@@ -8,6 +8,9 @@ import sys
 import textwrap
 from typing import Any
 
+from pydantic import BaseModel
+
+from algorithms.params import type_name
 from lidar_outliers.detectors import DETECTORS, parameter_table
 from lidar_outliers.params import PipelineParams
 
@@ -28,16 +31,16 @@ def listing() -> dict[str, Any]:
     detectors = {
         name: {
             "kind": spec.kind,
-            "outlier_flags_bit": spec.bit,
-            "score_dimension": f"{name}_score" if spec.kind == "outlier" else None,
+            "outlier_flags_bit": spec.flag_bit,
+            "score_dimension": spec.score_dimension,
             "needs": list(spec.needs),
             "summary": spec.summary,
             "description": spec.description,
-            "parameters": parameter_table(spec.params_model),
+            "parameters": parameter_table(spec),
         }
         for name, spec in DETECTORS.items()
     }
-    pipeline = parameter_table(PipelineParams)
+    pipeline = model_table(PipelineParams)
     return {"detectors": detectors, "pipeline": pipeline}
 
 
@@ -63,6 +66,19 @@ def run(args: argparse.Namespace) -> int:
     out += _rows(data["pipeline"], option_prefix="")
     sys.stdout.write("\n".join(out) + "\n")
     return 0
+
+
+def model_table(model: type[BaseModel]) -> list[dict[str, Any]]:
+    """Name, type, default, range and description of each field of a pydantic model."""
+    rows = []
+    for name, info in model.model_fields.items():
+        bounds = [f"{symbol} {getattr(meta, attr)}" for meta in info.metadata
+                  for attr, symbol in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<"))
+                  if getattr(meta, attr, None) is not None]
+        rows.append({"name": name, "type": type_name(info.annotation), "default": info.default,
+                     "range": " and ".join(bounds) or None,
+                     "description": info.description or ""})
+    return rows
 
 
 def _rows(params: list[dict[str, Any]], option_prefix: str) -> list[str]:

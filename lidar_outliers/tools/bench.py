@@ -21,7 +21,6 @@ run.
 from __future__ import annotations
 
 import hashlib
-import inspect
 import json
 import os
 import resource
@@ -131,7 +130,7 @@ def run_outlier_pipeline(cloud, stages: list[str]) -> tuple[np.ndarray, list[np.
     start = time.perf_counter()
     result = run_pipeline(cloud, params)
     seconds = time.perf_counter() - start
-    per_stage = [(result.flags & np.uint8(DETECTORS[d].bit or 0)) != 0 for d in stages]
+    per_stage = [(result.flags & DETECTORS[d].flag_bit) != 0 for d in stages]
     return result.flags != 0, per_stage, seconds
 
 
@@ -419,22 +418,12 @@ def _mean(values: list) -> float | None:
 
 
 def baselines() -> dict[str, Callable[[Any], np.ndarray]]:
-    """Outlier filters from outside the project: DROR (``algorithms.dror``), Open3D's SOR/ROR.
+    """Outlier filters from outside the project: Open3D's SOR/ROR when ``open3d`` is installed
+    (an optional package; DROR is a registered detector and runs as a pipeline).
 
-    Each takes a Cloud and returns flagged (n,) bool. DROR is skipped here when it is already a
-    registered detector (then it runs as a pipeline).
+    Each takes a Cloud and returns flagged (n,) bool.
     """
-    from lidar_outliers.detectors import DETECTORS
-
     out: dict[str, Callable[[Any], np.ndarray]] = {}
-    if "dror" not in DETECTORS:
-        try:
-            from algorithms import dror
-        except ImportError:
-            dror = None
-        fn = _find_detect(dror) if dror is not None else None
-        if fn is not None:
-            out["DROR (baseline)"] = lambda cloud: _flags_of(fn(cloud.xyz + cloud.origin))
     try:
         import open3d as o3d  # noqa: F401
     except ImportError:
@@ -442,17 +431,6 @@ def baselines() -> dict[str, Callable[[Any], np.ndarray]]:
     out["Open3D statistical (20, 2.0)"] = _open3d_statistical
     out["Open3D radius (3 in 0.5 m)"] = _open3d_radius
     return out
-
-
-def _find_detect(module) -> Callable | None:
-    for name, fn in inspect.getmembers(module, inspect.isfunction):
-        if name.startswith("detect") and fn.__module__ == module.__name__:
-            return fn
-    return None
-
-
-def _flags_of(result) -> np.ndarray:
-    return np.asarray(getattr(result, "flagged", result), dtype=bool)
 
 
 def _open3d_cloud(cloud):
@@ -634,7 +612,7 @@ def measure_speed(detector: str, path: Path) -> dict[str, Any]:
 
     spec = DETECTORS[detector]
     cloud = read_cloud(path)
-    params = spec.params_model()
+    params = spec.parameters()
     spec.run(cloud.subset(np.arange(min(2000, len(cloud)))), params)
     proc = psutil.Process()
     rss_before = proc.memory_info().rss / 2**20

@@ -130,13 +130,15 @@ def critical_values(
 
 def _default_critical_value(name: str) -> float | None:
     from algorithms.stats import normal_critical_value, t_critical_value
-    from lidar_outliers.params import STAGE_MODELS
+    from lidar_outliers.detectors import DETECTORS
 
-    model = STAGE_MODELS.get(name)
-    alpha = getattr(model(), "alpha", None) if model is not None else None
+    if name not in DETECTORS:
+        return None
+    defaults = DETECTORS[name].parameters()
+    alpha = getattr(defaults, "alpha", None)
     if alpha is None:
         return None
-    k = getattr(model(), "k", None)
+    k = getattr(defaults, "k", None)
     if name == "patch" and k is not None:
         return float(t_critical_value(alpha, k - 9))
     return normal_critical_value(alpha)

@@ -13,7 +13,8 @@ import httpx
 import pytest
 from pydantic_core import to_jsonable_python
 
-from lidar_outliers.params import STAGE_MODELS, PipelineParams
+from lidar_outliers.detectors import DETECTORS
+from lidar_outliers.params import PipelineParams
 from tests.e2e.clouds import write_cloud
 from tests.e2e.stack import RedisServer, Stack, running_stack
 
@@ -61,8 +62,9 @@ def submit(client: httpx.Client, data: bytes, inputs: dict | None = None,
 def test_processes_are_generated_from_the_models(stack: Stack) -> None:
     with stack.client() as client:
         ids = [p["id"] for p in client.get("/processes").json()["processes"]]
-        assert set(STAGE_MODELS) | {"pipeline"} <= set(ids)
-        for name, model in STAGE_MODELS.items():
+        assert set(DETECTORS) | {"pipeline"} <= set(ids)
+        for name, detector in DETECTORS.items():
+            model = detector.model
             doc = client.get(f"/processes/{name}").json()
             for field, info in model.model_fields.items():
                 if field == "detector":

@@ -11,7 +11,7 @@ import pytest
 from lidar_outliers import lasio
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.errors import ParameterError
-from lidar_outliers.params import OUTLIER_DETECTOR_BITS, PipelineParams, parse_pipeline_params
+from lidar_outliers.params import FLAG_BITS, PipelineParams, parse_pipeline_params
 from lidar_outliers.pipeline import resolve_stages, run_pipeline, usable_gps_time
 from lidar_outliers.process import process_file
 from tests.lidar_outliers.conftest import scan_line_cloud, write_las
@@ -193,7 +193,7 @@ def test_default_profile_chosen_by_run_pipeline(rng):
     assert [s["detector"] for s in st["stages"]] == ["snow"]
     assert st["profile"] == "spinning" and st["profile_facts"]["channel_dimensions"] == ["ring"]
     by_bit = st["overall"]["flagged_by_bit"]
-    assert set(by_bit) == set(OUTLIER_DETECTOR_BITS)  # every registered bit, not the paper's 3
+    assert set(by_bit) == set(FLAG_BITS)  # every registered bit, not the paper's 3
     assert by_bit["snow"] == st["stages"][0]["points_flagged"]
 
 

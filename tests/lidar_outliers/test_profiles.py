@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lidar_outliers.lasio import inspect_las
-from lidar_outliers.params import DetachedParams, SnowParams, default_stages
+from lidar_outliers.params import default_stages
 from lidar_outliers.profiles import choose_profile, default_pipeline, profile_stages
 
 AIRBORNE = Path(__file__).resolve().parents[1] / "data" / "airborne" / "laspy__append-bug.laz"
@@ -35,7 +35,7 @@ def test_spinning_sweep_in_sensor_frame(tmp_path):
     facts = inspect_las(write_las(tmp_path / "sweep.las", xyz, ring=True)).to_dict()
     assert choose_profile(facts) == "spinning"
     profile, stages = default_pipeline(facts)
-    assert profile == "spinning" and isinstance(stages[0], SnowParams)
+    assert profile == "spinning" and stages[0].detector == "snow"
 
 
 def test_ring_without_the_sensor_origin_is_not_spinning(tmp_path):
@@ -60,7 +60,7 @@ def test_dense_strip_is_mobile_transient_then_height_field(tmp_path):
 def test_real_airborne_tile():
     facts = inspect_las(AIRBORNE).to_dict()
     assert choose_profile(facts) == "airborne"
-    assert isinstance(default_pipeline(facts)[1][0], DetachedParams)
+    assert default_pipeline(facts)[1][0].detector == "detached"
 
 
 def test_unknown_profile_is_refused():

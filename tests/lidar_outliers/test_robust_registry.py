@@ -13,7 +13,7 @@ from algorithms.dror import detect_dror
 from algorithms.snow import detect_snow
 from lidar_outliers.errors import MissingDimensionError, ParameterError
 from lidar_outliers.lasio import read_cloud
-from lidar_outliers.params import OUTLIER_DETECTOR_BITS, parse_pipeline_params
+from lidar_outliers.params import FLAG_BITS, parse_pipeline_params
 from lidar_outliers.pipeline import run_pipeline
 
 AIRBORNE = Path(__file__).resolve().parents[1] / "data" / "airborne" / "laspy__append-bug.laz"
@@ -45,7 +45,7 @@ def sweep_file(path: Path, seed: int = 0) -> tuple[Path, np.ndarray, np.ndarray]
 def run(cloud, stage: dict) -> np.ndarray:
     params = parse_pipeline_params({"pipeline": [stage], "classify": False})
     res = run_pipeline(cloud, params)
-    return (res.flags & np.uint8(OUTLIER_DETECTOR_BITS[stage["detector"]])) != 0
+    return (res.flags & FLAG_BITS[stage["detector"]]) != 0
 
 
 def test_dror_uses_the_sensor_origin_given_in_file_coordinates(tmp_path):

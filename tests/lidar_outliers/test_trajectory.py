@@ -8,9 +8,8 @@ import pytest
 from algorithms.free_space import detect_free_space, scanner_origins
 from algorithms.transient import detect_transient
 from lidar_outliers.cloud import Cloud
-from lidar_outliers.detectors import get_detector
+from lidar_outliers.detectors import DETECTORS, get_detector
 from lidar_outliers.errors import ParameterError
-from lidar_outliers.params import TransientParams
 from lidar_outliers.tools.simulator import SCANNERS, simulate
 from lidar_outliers.trajectory import parse_trajectory, read_trajectory
 
@@ -56,7 +55,7 @@ def test_binary_file_is_refused(tmp_path):
 
 def test_default_lever_arms_are_the_simulators():
     """The documented default: the simulator's scanners, trajectory at the scanners' height."""
-    arms = {a[0]: a[1:] for a in TransientParams().lever_arms}
+    arms = {a[0]: a[1:] for a in DETECTORS["transient"].parameters().lever_arms}
     assert arms == {s.source_id: (s.offset[0], s.offset[1], 0.0) for s in SCANNERS}
 
 
@@ -70,7 +69,7 @@ def test_transient_with_trajectory_is_clusters_or_free_space():
     zeros = np.zeros(n, np.uint8)
     cloud = Cloud(sim.xyz - shift, shift, sim.gps_time, sim.point_source_id, zeros,
                   trajectory=traj_local)
-    params = TransientParams()
+    params = DETECTORS["transient"].parameters()
     result = get_detector("transient").run(cloud, params)
 
     arms = {int(a[0]): tuple(a[1:]) for a in params.lever_arms}
@@ -97,6 +96,7 @@ def test_points_outside_the_trajectory_time_are_left_out():
     half = sim.trajectory[: len(sim.trajectory) // 2]
     cloud = Cloud(sim.xyz, np.zeros(3), sim.gps_time, sim.point_source_id, zeros,
                   trajectory=half)
-    info = get_detector("transient").run(cloud, TransientParams()).info["free_space"]
+    transient = get_detector("transient")
+    info = transient.run(cloud, transient.parameters()).info["free_space"]
     inside = (sim.gps_time >= half[0, 0]) & (sim.gps_time <= half[-1, 0])
     assert info["points_covered"] == int(inside.sum()) and info["points_uncovered"] > 0

@@ -6,7 +6,7 @@ import pytest
 from pydantic_core import to_jsonable_python
 
 from lidar_outliers.detectors import DETECTORS
-from lidar_outliers.params import PipelineParams, TemporalParams
+from lidar_outliers.params import PipelineParams, stage
 from service.problems import Problem
 from service.processes import describe, process_ids, resolve_inputs
 
@@ -18,7 +18,7 @@ def test_one_process_per_registered_detector_plus_pipeline() -> None:
 @pytest.mark.parametrize("name", list(DETECTORS))
 def test_description_has_every_parameter_with_its_default(name: str) -> None:
     doc = describe(name)
-    model = DETECTORS[name].params_model
+    model = DETECTORS[name].model
     for field, info in model.model_fields.items():
         if field != "detector":
             # The description is JSON: a tuple default (dror/snow origin) appears as a list.
@@ -32,7 +32,7 @@ def test_description_has_every_parameter_with_its_default(name: str) -> None:
 
 def test_detector_inputs_become_a_one_stage_pipeline() -> None:
     params = resolve_inputs("temporal", {"n1": 3, "sigma": 0.02, "classify": False})
-    assert params == PipelineParams(pipeline=[TemporalParams(n1=3, sigma=0.02)], classify=False)
+    assert params == PipelineParams(pipeline=[stage("temporal", n1=3, sigma=0.02)], classify=False)
 
 
 def test_pipeline_inputs_are_pipeline_params() -> None:

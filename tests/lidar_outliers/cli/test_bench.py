@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lidar_outliers.cli import main
-from lidar_outliers.detectors import DETECTORS, DetectorSpec
+from lidar_outliers.detectors import DETECTORS, Detector
 from lidar_outliers.tools import bench, paper
 
 DATA = Path(__file__).resolve().parents[2] / "data"
@@ -82,8 +82,8 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
 
 
 def test_new_registry_detectors_join_the_benchmark(monkeypatch):
-    spec = DetectorSpec(name="newdet", params_model=DETECTORS["patch"].params_model,
-                        run=DETECTORS["patch"].run, kind="outlier", bit=64, summary="new")
+    spec = Detector(name="newdet", parameters=DETECTORS["patch"].parameters,
+                    run=DETECTORS["patch"].run, summary="new", flag_bit=1 << 15)
     monkeypatch.setitem(DETECTORS, "newdet", spec)
     pipelines = bench.outlier_pipelines()
     assert list(pipelines)[:4] == list(bench.PAPER_PIPELINES)

@@ -97,7 +97,8 @@ def test_params_file_flags_and_stats_file(capsys, tmp_path, cloud_file):
         (["--detector", "temporal", "--n1", "0"],
          2, "--n1 of --detector temporal: Input should be greater than or equal to 1"),
         (["--detector", "temporal", "--sigma", "abc"], 2, "--sigma of --detector temporal"),
-        (["--detector", "temporal", "--sigma", "-1"], 2, "sigma must be > 0 or 'auto'"),
+        (["--detector", "temporal", "--sigma", "-1"], 2,
+             "--sigma of --detector temporal: Input should be greater than 0"),
         (["--detector", "temporal", "--k", "40"], 2, "--k is not a parameter of detector temporal"),
         (["--detector", "median"], 2, "unknown detector 'median'"),
         (["--detector"], 2, "--detector needs a name"),
@@ -158,7 +159,7 @@ def test_detectors_listing_text_and_json(capsys):
     assert code == 0
     for name, spec in DETECTORS.items():
         assert f"\n{name}  (" in "\n" + text
-        for field, info in spec.params_model.model_fields.items():
+        for field, info in spec.model.model_fields.items():
             if field != "detector":
                 assert "--" + field.replace("_", "-") in text
                 assert f"default {json.dumps(info.default)}" in text
@@ -168,7 +169,7 @@ def test_detectors_listing_text_and_json(capsys):
     assert list(data["detectors"]) == list(DETECTORS)
     k = next(p for p in data["detectors"]["patch"]["parameters"] if p["name"] == "k")
     assert k == {"name": "k", "type": "int", "default": 40, "range": ">= 10 and <= 500",
-                 "description": DETECTORS["patch"].params_model.model_fields["k"].description}
+                 "description": DETECTORS["patch"].model.model_fields["k"].description}
     assert data["detectors"]["temporal"]["outlier_flags_bit"] == 1
     assert data["detectors"]["ground"]["outlier_flags_bit"] is None
     assert {p["name"] for p in data["pipeline"]} == {

@@ -1,0 +1,135 @@
+"""What one detector declaration holds, and the parameter model derived from it.
+
+A detector is declared once, in its own module of this package, as ``DETECTOR = Detector(...)``:
+its name, its parameters (the dataclass its algorithm module declares, limits included), the
+adapter that runs it on a :class:`~lidar_outliers.cloud.Cloud`, its bit of ``outlier_flags``, a
+one-line summary and the dimensions it needs. From that one declaration come the pydantic model
+that validates a pipeline stage (and so the command line's options, the API's ``/processes``
+description and the statistics' parameter names), the score dimension's name and the flag bit.
+"""
+
+from __future__ import annotations
+
+import types
+import typing
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
+
+from algorithms.params import Limits, Parameters, parameter_infos
+from algorithms.result import DetectorResult
+from lidar_outliers.cloud import Cloud
+from lidar_outliers.output import FLAG_BITS_AVAILABLE, score_dimension
+
+
+@dataclass
+class GroundResult:
+    """Outcome of a ground filter on n points: ``is_ground`` (n,) bool and JSON-able ``info``."""
+
+    is_ground: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+class StageModel(BaseModel):
+    """Base of every detector's stage model: ``{"detector": name, **parameters}``.
+
+    Unknown fields and non-finite numbers are refused; after the field checks the declared
+    parameters' own rules run (:meth:`algorithms.params.Parameters.check`).
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    declared: ClassVar[type[Parameters]]
+
+    def parameters(self) -> Parameters:
+        """The stage as its algorithm's parameters dataclass (checked again on the way)."""
+        return self.declared(**self.model_dump(exclude={"detector"}))
+
+    @model_validator(mode="after")
+    def _declared_rules(self) -> StageModel:
+        self.parameters()  # ParameterError is a ValueError: pydantic reports it by name
+        return self
+
+
+Run = Callable[[Cloud, Any], DetectorResult | GroundResult]
+
+
+@dataclass(frozen=True)
+class Detector:
+    """One detector, declared once (module docstring).
+
+    ``kind`` ``"outlier"`` sets bit ``flag_bit`` of ``outlier_flags`` and writes
+    ``<name>_score``; ``"ground"`` writes classes 2/1 instead (no bit, no score). ``run`` gets
+    the cloud and the stage's :class:`~algorithms.params.Parameters` instance.
+    """
+
+    name: str
+    parameters: type[Parameters]
+    run: Run
+    summary: str
+    kind: Literal["outlier", "ground"] = "outlier"
+    flag_bit: int | None = None
+    needs: tuple[str, ...] = ()
+    model: type[StageModel] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if (self.kind == "outlier") != (self.flag_bit is not None):
+            raise ValueError(f"detector {self.name}: an outlier detector needs a flag_bit, "
+                             f"a ground filter has none")
+        if self.flag_bit is not None and not _is_flag_bit(self.flag_bit):
+            raise ValueError(f"detector {self.name}: flag_bit {self.flag_bit} is not one of the "
+                             f"{FLAG_BITS_AVAILABLE} bits of outlier_flags (1, 2, 4, ...)")
+        object.__setattr__(self, "model", stage_model(self.name, self.parameters))
+
+    @property
+    def score_dimension(self) -> str | None:
+        """The float32 extra dimension holding this detector's score (outlier detectors)."""
+        return score_dimension(self.name) if self.kind == "outlier" else None
+
+    @property
+    def description(self) -> str:
+        return " ".join((self.parameters.__doc__ or self.summary).split())
+
+    def stage(self, **values: Any) -> StageModel:
+        """A validated stage of this detector (pydantic errors name the parameter)."""
+        return self.model(detector=self.name, **values)
+
+
+def _is_flag_bit(bit: int) -> bool:
+    return isinstance(bit, int) and bit > 0 and bit & (bit - 1) == 0 and (
+        bit < 1 << FLAG_BITS_AVAILABLE)
+
+
+def stage_model(name: str, parameters: type[Parameters]) -> type[StageModel]:
+    """The pydantic model of one stage: ``detector`` plus each declared parameter, with its
+    default, description and limits (the JSON Schema of ``/processes`` shows them)."""
+    fields: dict[str, Any] = {"detector": (Literal[name], name)}  # type: ignore[valid-type]
+    for info in parameter_infos(parameters):
+        fields[info.name] = (
+            _constrained(info.annotation, info.limits),
+            Field(info.default, description=info.doc),
+        )
+    title = "".join(part.capitalize() for part in name.split("_")) + "Params"
+    model = create_model(title, __base__=StageModel, __doc__=parameters.__doc__, **fields)
+    model.declared = parameters
+    return model
+
+
+def _constrained(annotation: Any, limits: Limits) -> Any:
+    """``annotation`` with ``limits`` on every number it holds (pydantic cannot put bounds on a
+    union, so they go on its numeric members and on the elements of tuples and lists)."""
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    bounds = {k: v for k, v in vars(limits).items() if v is not None}
+    if annotation in (int, float):
+        return Annotated[annotation, Field(**bounds)] if bounds else annotation
+    if origin in (typing.Union, types.UnionType):
+        return typing.Union[tuple(_constrained(a, limits) for a in args)]  # noqa: UP007
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple[_constrained(args[0], limits), ...]  # type: ignore[misc]
+        return tuple[tuple(_constrained(a, limits) for a in args)]  # type: ignore[misc]
+    if origin is list:
+        return list[_constrained(args[0], limits)]  # type: ignore[misc]
+    return annotation

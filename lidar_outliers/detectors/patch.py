@@ -1,0 +1,24 @@
+"""``patch``: the paper's quadric (eqs. 18-31) fitted to each point's k nearest neighbours, the
+point tested with eq. 31 (algorithm (b); :mod:`algorithms.patch`)."""
+
+from __future__ import annotations
+
+from algorithms.patch import PatchParameters
+from algorithms.result import DetectorResult
+from lidar_outliers.cloud import Cloud
+from lidar_outliers.detectors.base import Detector
+
+
+def run(cloud: Cloud, params: PatchParameters) -> DetectorResult:
+    from algorithms.patch import detect_patch
+
+    return detect_patch(cloud.xyz, k=params.k, sigma=params.sigma, alpha=params.alpha)
+
+
+DETECTOR = Detector(
+    name="patch",
+    parameters=PatchParameters,
+    run=run,
+    summary="Quadric fitted to each point's k nearest neighbours, tested with eq. 31.",
+    flag_bit=2,
+)
