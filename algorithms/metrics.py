@@ -53,10 +53,18 @@ def outlier_confusion(truth: np.ndarray, flagged: np.ndarray) -> dict[str, int |
         ``precision``, ``recall`` and ``f1`` as fractions in [0, 1]. Undefined ratios are ``None``.
     """
     truth, flagged = _pair(truth, flagged, "truth", "flagged")
-    n = int(truth.size)
-    outliers = int(np.count_nonzero(truth))
-    tp = int(np.count_nonzero(truth & flagged))
-    fp = int(np.count_nonzero(~truth & flagged))
+    return confusion_from_counts(
+        points=int(truth.size), outliers=int(np.count_nonzero(truth)),
+        identified=int(np.count_nonzero(truth & flagged)),
+        false_alarms=int(np.count_nonzero(~truth & flagged)),
+    )
+
+
+def confusion_from_counts(
+    *, points: int, outliers: int, identified: int, false_alarms: int
+) -> dict[str, int | float | None]:
+    """:func:`outlier_confusion` from its four counts (for results counted chunk by chunk)."""
+    n, tp, fp = points, identified, false_alarms
     fn = outliers - tp
     precision = _ratio(tp, tp + fp)
     recall = _ratio(tp, outliers)

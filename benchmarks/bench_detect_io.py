@@ -1,6 +1,6 @@
 """Whole-command speed of ``lidar-outliers detect --detector temporal`` against plain laspy I/O.
 
-Target (issue 2): the whole command within 3x of just reading and writing the file with laspy,
+Target: the whole command within 3x of just reading and writing the file with laspy,
 on a 1.1 million point mobile cloud. The cloud is synthetic: two profile scanners interleaved in
 time order, coordinates near 5e6 m, GPS times near 5e5 s, LAS 1.4 point format 6.
 

@@ -16,7 +16,7 @@ Each cloud is generated in memory by :func:`~lidar_outliers.tools.simulator.simu
 
 Prints per condition and seed: points, outliers, recall and false alarms (% of the real points)
 for each detector, the union's recall per outlier kind, and points per second; then the pooled
-figures per condition against the issue 5 targets (recall >= 90 %, false alarms <= 0.05 %).
+figures per condition against the targets (recall >= 90 %, false alarms <= 0.05 %).
 ``--markdown FILE`` writes the same tables as Markdown. Numba compilation is done (and cached) on
 a small cloud before the timed runs.
 """

@@ -1,4 +1,4 @@
-"""Score the issue-5 detectors (dror, snow, detached) on real and simulated clouds.
+"""Score the detectors for spinning and airborne data (dror, snow, detached) on real and simulated clouds.
 
 Usage::
 
@@ -8,7 +8,7 @@ Usage::
 Sections (each skipped when its data is missing):
 
 1. WADS falling snow (``../shared/data/wads``): precision, recall, F1 per frame and pooled, for
-   the DROR baseline (k_min 2, multiplier 4, 0.2 degrees: issue 5's best setting) and ``snow``;
+   the DROR baseline (k_min 2, multiplier 4, 0.2 degrees: its best setting) and ``snow``;
    points per second. Target: F1 >= 0.92.
 2. Airborne gross outliers (``../shared/data/airborne``): recall on ``gross``, false alarms on
    unlabelled points, for ``detached`` (and, with ``--patch-speed``, the paper's ``patch`` for the

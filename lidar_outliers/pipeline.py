@@ -21,7 +21,7 @@ from pydantic import BaseModel
 
 from algorithms.result import DetectorResult
 from lidar_outliers.cloud import Cloud
-from lidar_outliers.detectors import GroundResult, get_detector
+from lidar_outliers.detectors import GroundResult, StageModel, get_detector
 from lidar_outliers.errors import ParameterError
 from lidar_outliers.lasio import LasFacts
 from lidar_outliers.output import FLAGS_DTYPE
@@ -159,11 +159,7 @@ def run_pipeline(
         if spec.kind == "outlier":
             scores[spec.name] = np.full(n, np.nan, dtype=np.float32)
         started = time.perf_counter()
-        entry: dict[str, Any] = {
-            "detector": spec.name,
-            "params": stage.model_dump(mode="json"),
-            "points_in": int(index.size),
-        }
+        entry = stage_entry(stage, int(index.size))
         if index.size == 0:
             entry.update(points_tested=0, points_flagged=0, skipped="no points left to test")
             stage_stats.append(entry)
@@ -197,16 +193,53 @@ def run_pipeline(
         progress(hi, "detection done")
     if classes is not None:
         classes[flags != 0] = params.noise_class
-    statistics: dict[str, Any] = {
-        "input": fact_dict if fact_dict is not None else {"points": n},
+    statistics = pipeline_statistics(
+        params, fact_dict if fact_dict is not None else {"points": n}, note, stage_stats,
+        _overall(flags, noise_truth))
+    return PipelineResult(flags, scores, classes, statistics)
+
+
+def stage_entry(stage: StageModel, points_in: int) -> dict[str, Any]:
+    """The start of a stage's statistics: detector, parameters as resolved, points it got."""
+    return {"detector": stage.detector, "params": stage.model_dump(mode="json"),
+            "points_in": points_in}
+
+
+def pipeline_statistics(
+    params: PipelineParams, input_facts: Mapping[str, Any], note: Mapping[str, Any],
+    stages: list[dict[str, Any]], overall: dict[str, Any],
+) -> dict[str, Any]:
+    """The statistics document of a run (JSON-ready), whichever way the points were read."""
+    return jsonable({
+        "input": dict(input_facts),
         **note,
         "classify": params.classify,
         "noise_class": params.noise_class,
         "reference_classes": params.reference_classes,
-        "stages": stage_stats,
-        "overall": _overall(flags, noise_truth),
+        "stages": stages,
+        "overall": overall,
+    })
+
+
+def overall_statistics(
+    points: int, points_flagged: int, flagged_by_bit: Mapping[str, int],
+    confusion: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The ``overall`` part: points, points flagged, flags per detector (every registered bit)
+    and, with reference classes, the confusion counts of all stages together."""
+    out: dict[str, Any] = {
+        "points": points,
+        "points_flagged": points_flagged,
+        "flagged_by_bit": {name: int(flagged_by_bit.get(name, 0)) for name in FLAG_BITS},
     }
-    return PipelineResult(flags, scores, classes, jsonable(statistics))
+    if confusion is not None:
+        out["confusion"] = confusion
+    return out
+
+
+def noise_reference(reference: list[int] | None) -> list[int]:
+    """The reference classes that mark noise (all but ground's class 2)."""
+    return [c for c in reference or [] if c != GROUND_CLASS]
 
 
 def cloud_facts(cloud: Cloud) -> dict[str, Any]:
@@ -251,26 +284,19 @@ def _reference_truth(
     """Noise truth (the reference classes other than 2) and ground truth (class 2, if named)."""
     if not reference:
         return None, None
-    noise_classes = [c for c in reference if c != GROUND_CLASS]
+    noise_classes = noise_reference(reference)
     noise = np.isin(cloud.classification, noise_classes) if noise_classes else None
     ground = cloud.classification == GROUND_CLASS if GROUND_CLASS in reference else None
     return noise, ground
 
 
 def _overall(flags: np.ndarray, noise_truth: np.ndarray | None) -> dict[str, Any]:
-    flagged = flags != 0
-    out: dict[str, Any] = {
-        "points": int(flags.size),
-        "points_flagged": int(np.count_nonzero(flagged)),
-        "flagged_by_bit": {
-            name: int(np.count_nonzero(flags & bit)) for name, bit in FLAG_BITS.items()
-        },
-    }
-    if noise_truth is not None:
-        from algorithms.metrics import outlier_confusion
+    from algorithms.metrics import outlier_confusion
 
-        out["confusion"] = outlier_confusion(noise_truth, flagged)
-    return out
+    flagged = flags != 0
+    by_bit = {name: int(np.count_nonzero(flags & bit)) for name, bit in FLAG_BITS.items()}
+    confusion = None if noise_truth is None else outlier_confusion(noise_truth, flagged)
+    return overall_statistics(int(flags.size), int(np.count_nonzero(flagged)), by_bit, confusion)
 
 
 def jsonable(value: Any) -> Any:

@@ -1,7 +1,7 @@
 """Sensor profiles: which default pipeline suits a file, decided from its header and point layout.
 
-Issue 5 asks for one default pipeline, or a documented profile per sensor kind chosen from the
-file's header and point layout, never parameters tuned per file. Three kinds are told apart:
+One documented profile per sensor kind, chosen from the file's header and point layout, never
+parameters tuned per file. Three kinds are told apart:
 
 ``spinning``
     A multi-channel spinning sensor's sweep stored in the sensor frame (WADS, KITTI-like

@@ -15,12 +15,19 @@ from typing import Any
 import laspy
 import numpy as np
 
+from algorithms.temporal import TemporalStream
 from lidar_outliers import lasio
 from lidar_outliers.detectors import get_detector
 from lidar_outliers.lasio import LasFacts
 from lidar_outliers.output import FLAGS_DIMENSION, FLAGS_DTYPE, result_dimensions, score_dimension
-from lidar_outliers.params import FLAG_BITS, PipelineParams
-from lidar_outliers.pipeline import GROUND_CLASS, Progress, jsonable
+from lidar_outliers.params import PipelineParams
+from lidar_outliers.pipeline import (
+    Progress,
+    noise_reference,
+    overall_statistics,
+    pipeline_statistics,
+    stage_entry,
+)
 
 
 class _NotTimeOrdered(Exception):
@@ -41,10 +48,6 @@ def stream_temporal(
     it, the partial output is discarded and ``(None, reason)`` returned so that the caller runs
     the in-memory path. Otherwise returns the statistics.
     """
-    try:
-        from algorithms.temporal import TemporalStream
-    except ImportError:
-        return None, "algorithms.temporal.TemporalStream is not available"
     stage = params.pipeline[0]
     spec = get_detector("temporal")
     stream = TemporalStream(n1=stage.n1, n2=stage.n2, sigma=stage.sigma, alpha=stage.alpha,
@@ -82,37 +85,17 @@ def stream_temporal(
             _flush(pending, writer, params, critical, bit, counts, final=True)
     except _NotTimeOrdered:
         return None, "points are not in time order per scanner: read into memory instead"
-    entry = {
-        "detector": "temporal",
-        "params": stage.model_dump(mode="json"),
-        "points_in": n,
-        "info": stream.info,
-        "points_tested": counts.tested,
-        "points_flagged": counts.flagged,
-        "critical_value": critical,
-        "seconds": round(time.perf_counter() - started, 4),
-    }
-    noise_ref = [c for c in params.reference_classes or [] if c != GROUND_CLASS]
-    overall: dict[str, Any] = {
-        "points": n,
-        "points_flagged": counts.flagged,
-        "flagged_by_bit": {name: counts.flagged if name == "temporal" else 0
-                           for name in FLAG_BITS},
-    }
-    if noise_ref:
-        confusion = counts.confusion()
-        entry["confusion"] = overall["confusion"] = confusion
-    stats = {
-        "input": facts.to_dict(),
-        "pipeline_source": "given",
-        "mode": "streaming",
-        "classify": params.classify,
-        "noise_class": params.noise_class,
-        "reference_classes": params.reference_classes,
-        "stages": [entry],
-        "overall": overall,
-    }
-    return jsonable(stats), "streamed in one pass"
+    entry = stage_entry(stage, n)
+    entry.update(info=stream.info, points_tested=counts.tested, points_flagged=counts.flagged,
+                 critical_value=critical, seconds=round(time.perf_counter() - started, 4))
+    confusion = counts.confusion() if noise_reference(params.reference_classes) else None
+    if confusion is not None:
+        entry["confusion"] = confusion
+    overall = overall_statistics(n, counts.flagged, {"temporal": counts.flagged}, confusion)
+    stats = pipeline_statistics(params, facts.to_dict(), {"pipeline_source": "given"}, [entry],
+                                overall)
+    stats["mode"] = "streaming"
+    return stats, "streamed in one pass"
 
 
 def _in_time_order(t: np.ndarray, group: np.ndarray | None, last: dict[int, float]) -> bool:
@@ -166,14 +149,11 @@ class _StreamCounts:
     identified: int = 0
 
     def confusion(self) -> dict[str, Any]:
-        from algorithms.metrics import outlier_confusion
+        from algorithms.metrics import confusion_from_counts
 
-        # Rebuild boolean arrays of the right counts: the metric needs only the four counts.
-        tp, fp = self.identified, self.flagged - self.identified
-        fn, tn = self.outliers - tp, self.points - self.outliers - fp
-        truth = np.repeat([True, False, True, False], [tp, fp, fn, tn])
-        flagged = np.repeat([True, True, False, False], [tp, fp, fn, tn])
-        return outlier_confusion(truth, flagged)
+        return confusion_from_counts(points=self.points, outliers=self.outliers,
+                                     identified=self.identified,
+                                     false_alarms=self.flagged - self.identified)
 
 
 def _assign(pending: list[_Pending], index: np.ndarray, score: np.ndarray) -> None:
@@ -193,7 +173,7 @@ def _flush(
     bit: np.unsignedinteger, counts: _StreamCounts, *, final: bool,
 ) -> None:
     """Write the leading chunks whose points all have their final score."""
-    noise_ref = [c for c in params.reference_classes or [] if c != GROUND_CLASS]
+    noise_ref = noise_reference(params.reference_classes)
     while pending and (pending[0].done == len(pending[0].record) or final):
         p = pending.pop(0)
         flagged = p.score > critical

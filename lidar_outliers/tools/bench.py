@@ -1,4 +1,4 @@
-"""`lidar-outliers bench`: the evidence of issue 4 (and 5), as Markdown tables.
+"""`lidar-outliers bench`: accuracy and speed of every detector, as Markdown tables.
 
 Sections, each skipped when its data is absent:
 
@@ -6,7 +6,7 @@ Sections, each skipped when its data is absent:
    outlier pipeline -- the paper's ``temporal``, ``patch``, ``section`` and ``temporal->patch``,
    then every other outlier detector of :data:`lidar_outliers.detectors.DETECTORS` alone, then the
    default pipeline when it differs -- in the layout of the paper's Tables 2-5 beside the
-   published figures, plus precision, recall and F1; and a summary against issue 5's targets.
+   published figures, plus precision, recall and F1; and a summary against the targets.
 2. ISPRS ground-filter samples: type I, type II, total error and kappa per sample and the mean.
 3. WADS snow frames: precision, recall, F1 of each pipeline and of the baselines (DROR from
    ``algorithms.dror`` when it exists, Open3D's statistical/radius outlier removal when
@@ -41,7 +41,7 @@ SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 QUICK_SCALE, QUICK_SEEDS = 0.06, 1
 FULL_SCALE, FULL_SEEDS = 1.0, 3
 PAPER_PIPELINES = ("temporal", "patch", "section", "temporal->patch")
-#: Issue 5's targets on the simulated clouds.
+#: Targets on the simulated clouds: recall and false alarms (% of the real points).
 TARGET_RECALL, TARGET_FALSE_ALARM_PCT = 0.90, 0.05
 
 Print = Callable[[str], None]
@@ -242,7 +242,7 @@ def bench_simulated(cfg: BenchConfig, report: Report, say: Print) -> dict[str, P
             fa_pct = 100.0 * conf[c]["non_outliers_identified"] / max(real, 1)
             summary.append((name, c, conf[c], fa_pct, seconds[(name, c)] / n))
     report.lines += [
-        "### Summary against issue 5's targets",
+        "### Summary against the targets",
         "",
         f"Target: recall >= {100 * TARGET_RECALL:.0f} % and false alarms <= "
         f"{TARGET_FALSE_ALARM_PCT} % of the real (non-outlier) points on every cloud.",
@@ -534,7 +534,7 @@ def bench_wads(folder: Path, report: Report, say: Print) -> None:
         "## WADS: falling snow",
         "",
         f"{len(pairs)} frame(s) of `{folder}`, pooled; snow (label 110) is the outlier class. "
-        "Issue 5's target: F1 >= 0.92 (DROR reaches 0.85 at its best setting).",
+        "Target: F1 >= 0.92 (DROR reaches 0.85 at its best setting).",
         "",
         "| method | precision % | recall % | F1 | seconds |",
         "| --- | ---: | ---: | ---: | ---: |",
@@ -563,7 +563,7 @@ def bench_airborne(folder: Path, report: Report, say: Print) -> None:
         "## Airborne gross outliers",
         "",
         f"{', '.join(p.name for p, _ in pairs)}: recall on the `gross` points and false alarms "
-        "on the points not labelled at all (classification reset first). Issue 5's target: "
+        "on the points not labelled at all (classification reset first). Target: "
         "recall >= 95 %, false alarms <= 0.1 %.",
         "",
         "| method | gross found | recall % | false alarms | % of unlabelled | seconds |",

@@ -1,4 +1,4 @@
-"""Pictures of a result file: top-down view, side profile and score histograms (issue 4).
+"""Pictures of a result file: top-down view, side profile and score histograms.
 
 A result file is a LAS/LAZ file written by the pipeline: the input's points plus the extra
 dimensions ``outlier_flags`` (bitmask) and ``<detector>_score``. The picture shows
@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 
 from lidar_outliers.errors import LasFormatError, ParameterError
+from lidar_outliers.output import FLAGS_DIMENSION as FLAGS
+from lidar_outliers.output import FLAGS_DTYPE
 
-FLAGS = "outlier_flags"
 SCORE_SUFFIX = "_score"
 #: Statistics file names looked for beside a result (the service writes ``statistics.json``).
 STATS_NAMES = ("{stem}.stats.json", "{stem}.statistics.json", "{stem}.json", "statistics.json")
@@ -43,7 +44,7 @@ COLOURS = {
 
 @dataclass
 class ResultCloud:
-    """What the picture needs from a result file: xyz (n, 3), flags (n,) uint8, scores."""
+    """What the picture needs from a result file: xyz (n, 3), flags (n,), scores."""
 
     xyz: np.ndarray
     flags: np.ndarray
@@ -64,7 +65,8 @@ def read_result(path: str | Path) -> ResultCloud:
         raise LasFormatError(f"{path.name}: not a readable LAS/LAZ file ({exc})") from None
     names = list(las.point_format.extra_dimension_names)
     xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
-    flags = np.asarray(las[FLAGS], dtype=np.uint8) if FLAGS in names else np.zeros(len(xyz), "u1")
+    flags = np.asarray(las[FLAGS], dtype=FLAGS_DTYPE) if FLAGS in names else np.zeros(
+        len(xyz), FLAGS_DTYPE)
     scores = {
         n[: -len(SCORE_SUFFIX)]: np.asarray(las[n], dtype=np.float64)
         for n in names if n.endswith(SCORE_SUFFIX)

@@ -1,4 +1,4 @@
-"""A mobile-mapping survey of a parking-lot strip, simulated from physics (issue 4).
+"""A mobile-mapping survey of a parking-lot strip, simulated from physics.
 
 The paper's data (an Optech LYNX survey, Leslar, Wang & Hu 2010, section 4, Table 1) is not public.
 This module builds the closest honest substitute, in pure numpy:

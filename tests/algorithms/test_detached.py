@@ -133,7 +133,7 @@ def test_bad_input_is_refused():
 
 @pytest.mark.skipif(not (AIRBORNE / "laspy__append-bug.laz").exists(), reason="no copy")
 def test_real_airborne_gross_outliers():
-    """laspy's append-bug tile (BSD-2): issue 5's targets, recall >= 95 %, false alarms <= 0.1 %."""
+    """laspy's append-bug tile (BSD-2): the targets, recall >= 95 %, false alarms <= 0.1 %."""
     las = laspy.read(AIRBORNE / "laspy__append-bug.laz")
     with np.load(AIRBORNE / "laspy__append-bug.truth.npz") as t:
         gross = t["gross"].astype(bool)
