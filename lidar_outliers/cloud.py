@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from lidar_outliers.errors import MissingDimensionError
+from lidar_outliers.errors import MissingDimensionError, ParameterError
 
 
 @dataclass
@@ -37,6 +37,40 @@ class Cloud:
     classification: np.ndarray
     intensity: np.ndarray | None = None
     trajectory: np.ndarray | None = None
+
+    @classmethod
+    def from_arrays(
+        cls,
+        xyz: np.ndarray,
+        *,
+        gps_time: np.ndarray | None = None,
+        point_source_id: np.ndarray | None = None,
+        intensity: np.ndarray | None = None,
+        classification: np.ndarray | None = None,
+    ) -> Cloud:
+        """A cloud from world coordinates (n, 3): the origin is a point near their centre, so
+        coordinates near 5,000,000 m keep their precision. Missing ids and classes are 0."""
+        world = np.asarray(xyz, dtype=np.float64)
+        if world.ndim != 2 or world.shape[1] != 3:
+            raise ParameterError(f"xyz must have shape (n, 3), got {world.shape}")
+        n = world.shape[0]
+        origin = np.round((world.min(axis=0) + world.max(axis=0)) / 2) if n else np.zeros(3)
+
+        def column(values: np.ndarray | None, dtype: type, name: str) -> np.ndarray:
+            if values is None:
+                return np.zeros(n, dtype=dtype)
+            arr = np.asarray(values)
+            if arr.shape != (n,):
+                raise ParameterError(f"{name} must have shape ({n},), got {arr.shape}")
+            return arr.astype(dtype, copy=False)
+
+        return cls(
+            xyz=world - origin, origin=origin,
+            gps_time=None if gps_time is None else column(gps_time, np.float64, "gps_time"),
+            point_source_id=column(point_source_id, np.uint16, "point_source_id"),
+            classification=column(classification, np.uint8, "classification"),
+            intensity=None if intensity is None else column(intensity, np.uint16, "intensity"),
+        )
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
