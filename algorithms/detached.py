@@ -31,9 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
 from algorithms.params import Parameters, param
@@ -75,6 +72,10 @@ def small_clusters(xyz: np.ndarray, link: float, max_cluster: int) -> np.ndarray
     |D| > max_cluster), so all its link neighbours are among its kNN and in D: D is a link
     component. Hence the small components of both graphs are the same.
     """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
     n = len(xyz)
     if n == 0:
         return np.zeros(0, dtype=bool)
@@ -111,6 +112,8 @@ def envelope_scores(
     surf = np.flatnonzero(~candidate)
     if cand.size == 0 or surf.size < 3:
         return score
+    from scipy.spatial import cKDTree
+
     k = min(k_surface, surf.size)
     tree = cKDTree(xyz[surf, :2])
     for start in range(0, cand.size, _BATCH):
@@ -138,6 +141,8 @@ def median_spacing(xyz: np.ndarray, max_points: int = 100_000) -> float:
     ``max_points`` query points, all points in the tree). xyz : (n, 3). 0.0 for n < 2."""
     if len(xyz) < 2:
         return 0.0
+    from scipy.spatial import cKDTree
+
     step = max(1, len(xyz) // max_points)
     dist, _ = cKDTree(xyz).query(xyz[::step], k=2)
     return float(np.median(dist[:, 1]))

@@ -7,8 +7,8 @@ whose radius grows with the point's range from the sensor,
     radius_i = max(min_radius, multiplier x range_i x angular_resolution)
 
 and calls the point noise when fewer than ``k_min`` other points fall inside. Falling snow is
-sparse (one flake, one return), real surfaces are not. Issue 5 quotes multiplier 4, angular
-resolution 0.2 degrees and k_min 2 as the best setting on the WADS frames (F1 0.85).
+sparse (one flake, one return), real surfaces are not. The defaults (multiplier 4, angular
+resolution 0.2 degrees, k_min 2) are the setting reported best on the WADS frames (F1 0.85).
 
 Not one of the paper's detectors (Leslar, Wang & Hu 2010 have no equation for it); it is the
 baseline the new detectors are compared against.
@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
 from algorithms.params import Parameters, param
@@ -71,6 +70,8 @@ def neighbour_counts(xyz: np.ndarray, radius: np.ndarray, *, workers: int = 1) -
     """
     if len(xyz) == 0:
         return np.zeros(0, dtype=np.int64)
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(xyz)
     counts = tree.query_ball_point(xyz, radius, return_length=True, workers=workers)
     return np.asarray(counts, dtype=np.int64) - 1  # the point itself is always inside

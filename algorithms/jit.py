@@ -1,8 +1,9 @@
 """numba for the package's compiled kernels, with an on-disk cache that cannot go stale.
 
 Kernel modules import ``njit`` and ``prange`` from here, so the cache folder is set before any
-kernel is decorated. Modules without kernels (``temporal``, ``stats``) never import numba: its
-import and first cached load cost about 0.3 s, a large share of a short command's run time.
+kernel is decorated. Detector modules import their kernel modules inside the functions that run
+them, and modules without kernels (``temporal``, ``stats``) never import numba: its import and
+first cached load cost about 0.3 s, a large share of a short command's run time.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The ``transient`` detector: structure seen at one moment only, attached to nothing (issue 5).
+"""The ``transient`` detector: structure seen at one moment only, attached to nothing.
 
 The paper counts moving objects as outliers. A moving barrier arm is a clean cylinder, so no
 surface test can flag it, and the beams that saw through its place at other times often went to
@@ -27,9 +27,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from algorithms.errors import ParameterError
 from algorithms.params import Parameters, param
@@ -74,6 +71,8 @@ KNN_BATCH = 262_144
 def neighbour_table(xyz: np.ndarray, k: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """(n, k) int64 indices of each point's k nearest other points and (n, k) bool "within
     radius" (False also for the padding of clouds with fewer than k + 1 points)."""
+    from scipy.spatial import cKDTree
+
     n = len(xyz)
     kk = min(k + 1, n)
     tree = cKDTree(xyz)
@@ -107,6 +106,10 @@ def floating_clusters(xyz: np.ndarray, persistent: np.ndarray, idx: np.ndarray,
                       near: np.ndarray, radius: float) -> np.ndarray:
     """(n,) bool: single-epoch points whose cluster (links <= radius) touches no persistent
     point among the neighbour table."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
     single = np.flatnonzero(~persistent)
     out = np.zeros(len(xyz), dtype=bool)
     if single.size == 0:

@@ -11,7 +11,7 @@ from algorithms.free_space import (
     scanner_origins,
     see_through_counts,
 )
-from lidar_outliers.errors import ParameterError
+from algorithms.errors import ParameterError
 
 
 def slow_test(o: np.ndarray, p: np.ndarray, q: np.ndarray, radius: float, margin: float) -> bool:

@@ -9,10 +9,25 @@ import laspy
 import numpy as np
 import pytest
 
-from algorithms import ground as G
 from algorithms.ground import GroundParameters, classify_ground
+from algorithms.ground_raster import (
+    MAX_OPENINGS,
+    bilinear,
+    fill_pull_push,
+    opening_radii,
+    progressive_object_cells,
+    square_opening,
+)
+from algorithms.ground_tin import (
+    _select,
+    gradient_operators,
+    iterate_step_edges,
+    lowest_per_xy,
+    triangle_slopes,
+    triangulate,
+)
 from algorithms.metrics import ground_scores
-from lidar_outliers.errors import ParameterError
+from algorithms.errors import ParameterError
 
 ISPRS = Path(__file__).resolve().parents[1] / "data" / "isprs"
 SAMPLES = ["samp11", "samp21", "samp31", "samp41", "samp51", "samp61", "samp71"]
@@ -68,7 +83,7 @@ def random_tin(seed: int, n: int = 60):
     z = 0.2 * xy[:, 0] + 0.3 * rng.standard_normal(n)
     bumps = rng.random(n) < 0.25
     z[bumps] += rng.uniform(1, 8, bumps.sum())
-    tri, nbr, _ = G.triangulate(xy)
+    tri, nbr, _ = triangulate(xy)
     return xy, z, tri, nbr
 
 
@@ -76,7 +91,7 @@ def random_tin(seed: int, n: int = 60):
 @pytest.mark.parametrize("seed", range(5))
 def test_triangle_slopes_match_normal_vector_formula(seed):
     xy, z, tri, _ = random_tin(seed)
-    fast = G.triangle_slopes(xy, z, tri)
+    fast = triangle_slopes(xy, z, tri)
     slow = np.array([slow_slope_deg(np.column_stack([xy[t], z[t]])) for t in tri])
     np.testing.assert_allclose(fast, slow, rtol=1e-9, atol=1e-9)
 
@@ -85,9 +100,9 @@ def test_triangle_slopes_match_normal_vector_formula(seed):
 def test_one_adjustment_round_matches_triangle_loop(seed):
     xy, z, tri, nbr = random_tin(seed)
     tan_thr, min_step = math.tan(math.radians(45.0)), 0.5
-    inv, valid = G.gradient_operators(xy, tri)
+    inv, valid = gradient_operators(xy, tri)
     z_fast = z.copy()
-    adjusted, *_ = G.iterate_step_edges(xy, z_fast, tri, nbr, inv, valid, tan_thr, min_step, 1)
+    adjusted, *_ = iterate_step_edges(xy, z_fast, tri, nbr, inv, valid, tan_thr, min_step, 1)
     z_slow, moved = slow_round(xy, z, tri, tan_thr, min_step)
     assert moved, "the random TIN must contain step edges for this test to mean anything"
     assert set(np.flatnonzero(adjusted)) == moved
@@ -98,9 +113,9 @@ def test_one_adjustment_round_matches_triangle_loop(seed):
 def test_full_iteration_matches_repeated_slow_rounds(seed):
     xy, z, tri, nbr = random_tin(seed, n=80)
     tan_thr, min_step = math.tan(math.radians(45.0)), 0.5
-    inv, valid = G.gradient_operators(xy, tri)
+    inv, valid = gradient_operators(xy, tri)
     z_fast = z.copy()
-    adjusted, pending, edges, moved, _ = G.iterate_step_edges(
+    adjusted, pending, edges, moved, _ = iterate_step_edges(
         xy, z_fast, tri, nbr, inv, valid, tan_thr, min_step, 500
     )
     z_slow, ever = z.copy(), set()
@@ -117,9 +132,9 @@ def test_full_iteration_matches_repeated_slow_rounds(seed):
 
 def test_adjustment_only_lowers_and_never_below_the_lower_vertex():
     xy, z, tri, nbr = random_tin(11, n=120)
-    inv, valid = G.gradient_operators(xy, tri)
+    inv, valid = gradient_operators(xy, tri)
     z_fast = z.copy()
-    adjusted, *_ = G.iterate_step_edges(xy, z_fast, tri, nbr, inv, valid, 1.0, 0.5, 1000)
+    adjusted, *_ = iterate_step_edges(xy, z_fast, tri, nbr, inv, valid, 1.0, 0.5, 1000)
     assert adjusted.any()
     assert np.all(z_fast <= z)
     assert np.all(z_fast >= z.min())
@@ -129,8 +144,8 @@ def test_triangulators_agree_on_points_in_general_position():
     pytest.importorskip("triangle")
     rng = np.random.default_rng(3)
     xy = rng.random((300, 2)) * 50
-    a, _, name_a = G.triangulate(xy, backend="triangle")
-    b, _, name_b = G.triangulate(xy, backend="qhull")
+    a, _, name_a = triangulate(xy, backend="triangle")
+    b, _, name_b = triangulate(xy, backend="qhull")
     assert (name_a, name_b) == ("triangle", "qhull")
     assert {tuple(sorted(t)) for t in a} == {tuple(sorted(t)) for t in b}
 
@@ -217,7 +232,7 @@ def test_lowest_per_cell_matches_a_per_point_search():
     rng = np.random.default_rng(8)
     xy = rng.random((300, 2)) * 0.5
     z = np.round(rng.random(300), 2)  # ties in z: the smaller index wins
-    rep, unique_idx = G.lowest_per_xy(xy, z, 0.05)
+    rep, unique_idx = lowest_per_xy(xy, z, 0.05)
     np.testing.assert_array_equal(rep, slow_lowest_per_cell(xy, z, 0.05))
     np.testing.assert_array_equal(unique_idx, np.unique(rep))
 
@@ -376,7 +391,7 @@ def slow_pull_push_weighted(val: np.ndarray, wt: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("r", [1, 2, 5, 8, 11, 30])  # windows shorter and longer than the rows
 def test_square_opening_matches_loops(shape, r):
     a = np.random.default_rng(r).random(shape)
-    np.testing.assert_array_equal(G.square_opening(a, r), slow_opening(a, r))
+    np.testing.assert_array_equal(square_opening(a, r), slow_opening(a, r))
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -386,7 +401,7 @@ def test_select_is_the_kth_smallest(seed):
         vals = rng.integers(0, 6, m).astype(float) if seed % 2 else rng.random(m)
         for k in {0, m // 4, m // 2, m - 1}:
             buf = np.concatenate([vals, [-1.0, 99.0]])  # entries past m must not count
-            assert G._select(buf, m, k) == np.sort(vals)[k]
+            assert _select(buf, m, k) == np.sort(vals)[k]
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -396,7 +411,7 @@ def test_pull_push_matches_recursion_and_keeps_filled_cells(seed):
     grid = rng.random(shape)
     filled = rng.random(shape) < 0.4
     filled.flat[0] = True
-    out = G.fill_pull_push(grid, filled)
+    out = fill_pull_push(grid, filled)
     np.testing.assert_allclose(out, slow_pull_push(grid, filled), atol=1e-12)
     np.testing.assert_array_equal(out[filled], grid[filled])
     assert out.min() >= grid[filled].min() - 1e-12 and out.max() <= grid[filled].max() + 1e-12
@@ -409,20 +424,20 @@ def test_bilinear_matches_scipy_and_reproduces_a_plane():
     for shape in [(1, 1), (1, 6), (6, 1), (9, 7)]:
         a, b = rng.random(shape), rng.random(shape)
         ij = rng.uniform(-2, max(shape) + 1, (300, 2))
-        fa, fb = G.bilinear(a, b, ij)
+        fa, fb = bilinear(a, b, ij)
         np.testing.assert_allclose(fa, map_coordinates(a, ij.T, order=1, mode="nearest"))
         np.testing.assert_allclose(fb, map_coordinates(b, ij.T, order=1, mode="nearest"))
     i, j = np.meshgrid(np.arange(9.0), np.arange(7.0), indexing="ij")
     ij = rng.uniform(0, 6, (100, 2))
-    fa, _ = G.bilinear(2 * i - 3 * j + 1, i, ij)
+    fa, _ = bilinear(2 * i - 3 * j + 1, i, ij)
     np.testing.assert_allclose(fa, 2 * ij[:, 0] - 3 * ij[:, 1] + 1)
 
 
 def test_opening_radii_every_cell_then_stepped():
-    np.testing.assert_array_equal(G.opening_radii(25.0, 1.0), np.arange(1, 13))
-    np.testing.assert_array_equal(G.opening_radii(0.5, 1.0), [1])
-    dense = G.opening_radii(25.0, 0.1)  # 125 cells: stepped evenly, at most 16 openings
-    assert dense[0] == 1 and dense[-1] == 125 and len(dense) <= G.MAX_OPENINGS
+    np.testing.assert_array_equal(opening_radii(25.0, 1.0), np.arange(1, 13))
+    np.testing.assert_array_equal(opening_radii(0.5, 1.0), [1])
+    dense = opening_radii(25.0, 0.1)  # 125 cells: stepped evenly, at most 16 openings
+    assert dense[0] == 1 and dense[-1] == 125 and len(dense) <= MAX_OPENINGS
     assert np.all(np.diff(dense) > 0)
 
 
@@ -431,7 +446,7 @@ def slow_object_cells(grid, cell, window, slope):
     grid = grid.astype(np.float32)
     obj = np.zeros(grid.shape, bool)
     prev = grid
-    for r in G.opening_radii(window, cell):
+    for r in opening_radii(window, cell):
         opened = slow_opening(grid, int(r))
         obj |= prev - opened > np.float32(slope * r * cell)
         prev = opened
@@ -445,7 +460,7 @@ def test_progressive_object_cells_box_versus_ramp():
     ground = 0.05 * i + 0.12 * np.maximum(0, 8 - np.abs(j - 12))
     box = (np.abs(i - 10) < 3) & (np.abs(j - 6) < 3)
     grid = ground + 6.0 * box
-    obj = G.progressive_object_cells(grid, 1.0, 12.0, 0.2)
+    obj = progressive_object_cells(grid, 1.0, 12.0, 0.2)
     np.testing.assert_array_equal(obj, slow_object_cells(grid, 1.0, 12.0, 0.2))
     assert obj[box].all()  # the box is cut at once by the first windows wider than it
     assert not obj[~box].any()  # the ramp and the ridge rise slower than 0.2 per cell

@@ -5,16 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from algorithms.height_field import (
+from algorithms.height_field import ONE_SIDED_NZ, detect_height_field, neighbours
+from algorithms.height_field_fits import (
     MIN_HALF_POINTS,
-    ONE_SIDED_NZ,
     all_terms,
-    detect_height_field,
     height_field_fit,
-    neighbours,
     scores_from_terms,
 )
-from lidar_outliers.errors import ParameterError
+from algorithms.errors import ParameterError
 
 # --------------------------------------------------------------------------------------------
 # Slow references, straight from the formulas

@@ -22,10 +22,14 @@ def test_kernels_are_cached_in_the_folder_of_the_current_sources():
 
 def test_an_edit_to_any_module_changes_the_folder(tmp_path):
     package = Path(algorithms.__file__).parent
-    for path in package.glob("*.py"):
-        shutil.copy(path, tmp_path / path.name)
-    before = source_digest(tmp_path)
+    copy = tmp_path / "algorithms"
+    shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    before = source_digest(copy)
     assert before == source_digest(package)
-    with open(tmp_path / "quadric.py", "a") as f:
+    with open(copy / "quadric.py", "a") as f:
         f.write("\n# an edit in a module whose kernels others inline\n")
-    assert source_digest(tmp_path) != before
+    after_quadric = source_digest(copy)
+    assert after_quadric != before
+    with open(copy / "temporal" / "smoother.py", "a") as f:
+        f.write("\n# an edit in a subpackage\n")
+    assert source_digest(copy) != after_quadric

@@ -8,7 +8,7 @@ import pytest
 from algorithms.patch import detect_patch
 from algorithms.stats import t_critical_value
 from algorithms.tiles import grid_cells, group_by_cell, spatial_batches
-from lidar_outliers.errors import ParameterError
+from algorithms.errors import ParameterError
 from tests.algorithms.test_quadric import slow_fit
 
 

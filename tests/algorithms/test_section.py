@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 
 from algorithms.section import balanced_buckets, detect_section
-from lidar_outliers.errors import ParameterError
+from algorithms.errors import ParameterError
 from tests.algorithms.test_quadric import slow_fit
 
 

@@ -13,18 +13,11 @@ import laspy
 import numpy as np
 import pytest
 
-from algorithms import temporal
 from algorithms.stats import normal_critical_value
-from algorithms.temporal import (
-    TemporalStream,
-    cut_segments,
-    detect_temporal,
-    segment_differences,
-    segment_windows,
-    window_bounds,
-    window_differences,
-)
-from lidar_outliers.errors import MissingDimensionError, ParameterError
+from algorithms.temporal import TemporalStream, detect_temporal, windows
+from algorithms.temporal.segments import cut_segments, segment_windows
+from algorithms.temporal.windows import segment_differences, window_bounds, window_differences
+from algorithms.errors import MissingDimensionError, ParameterError
 
 # --------------------------------------------------------------------------------------------
 # Slow reference, written from the paper's equations
@@ -215,8 +208,8 @@ def test_results_do_not_depend_on_blocks_or_threads(monkeypatch):
     starts, ends = cut_segments(t, bounds, np.array([10.0, 10.0]))
     z = np.ascontiguousarray(xyz.T)
     reference = segment_differences(t, z, starts, ends, 4, 6)
-    monkeypatch.setattr(temporal, "_BLOCK", 37)
-    monkeypatch.setattr(temporal, "_PARALLEL_POINTS", 0)
+    monkeypatch.setattr(windows, "_BLOCK", 37)
+    monkeypatch.setattr(windows, "_PARALLEL_POINTS", 0)
     for threads in ("1", "2", "3"):
         monkeypatch.setenv("NUMBA_NUM_THREADS", threads)
         dz, sdz = segment_differences(t, z, starts, ends, 4, 6)

@@ -11,7 +11,7 @@ from algorithms.transient import (
     neighbour_table,
     persistent_points,
 )
-from lidar_outliers.errors import ParameterError
+from algorithms.errors import ParameterError
 
 
 def slow_floating(xyz, t, radius, min_dt, k):

@@ -1,0 +1,41 @@
+"""Detector modules import light: their parameters are read when the command line starts.
+
+The library builds its options from each detector's Parameters class, so importing a detector
+module must not import numba or scipy's heavy parts (together about 0.6 s); the kernels and
+scipy are imported when a detector runs.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+#: Detector modules whose import must stay light.
+LIGHT_MODULES = [
+    "algorithms.temporal",
+    "algorithms.ground",
+    "algorithms.height_field",
+    "algorithms.transient",
+    "algorithms.dror",
+    "algorithms.snow",
+    "algorithms.detached",
+]
+
+#: Modules that none of them may import.
+HEAVY_MODULES = ["numba", "scipy.spatial", "scipy.sparse", "scipy.stats"]
+
+
+@pytest.mark.parametrize("module", LIGHT_MODULES)
+def test_detector_module_imports_neither_numba_nor_scipy_spatial(module):
+    # A fresh interpreter: the test session itself has imported numba and scipy long ago.
+    code = (
+        "import importlib, json, sys\n"
+        f"importlib.import_module({module!r})\n"
+        f"print(json.dumps([m for m in {HEAVY_MODULES!r} if m in sys.modules]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert json.loads(out.stdout) == [], f"importing {module} imports {out.stdout.strip()}"
