@@ -16,16 +16,12 @@ Points must be distinct in XY (the ground filter keeps the lowest point per XY p
 from __future__ import annotations
 
 import numpy as np
+import startinpy
 from scipy.spatial import Delaunay
 
 from algorithms.jit import njit
 
-try:
-    import startinpy as _startinpy
-except ImportError:  # pragma: no cover - a dependency; kept optional for stripped installs
-    _startinpy = None
-
-try:  # optional (non-commercial licence)
+try:  # an optional extra (`pip install .[fast-tin]`): Triangle is free for non-commercial use only
     import triangle as _triangle
 except ImportError:  # pragma: no cover - depends on the environment
     _triangle = None
@@ -42,15 +38,16 @@ def delaunay(xy: np.ndarray, backend: str = "auto") -> tuple[np.ndarray, np.ndar
 
     Returns ``tri`` (m, 3) int64 vertex indices, ``nbr`` (m, 3) int64 with
     nbr[t, k] the triangle across the edge opposite vertex k (-1 on the hull), and the name of the
-    triangulator used. ``backend`` "auto" takes startin, else Triangle, else Qhull. Collinear or
-    fewer than 3 points give no triangles (backend "none").
+    triangulator used. ``backend`` "auto" takes startin, and Triangle (when installed) or else
+    Qhull where startin would merge points. Collinear or fewer than 3 points give no triangles
+    (backend "none").
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     xy = np.ascontiguousarray(xy, dtype=np.float64)
     if xy.shape[0] < 3 or np.linalg.matrix_rank(xy - xy.mean(axis=0), tol=1e-9) < 2:
         return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64), "none"
-    if backend == "startin" or (backend == "auto" and _startinpy is not None):
+    if backend in ("startin", "auto"):
         tri = _startin_triangles(xy)
         if tri is not None:
             return tri, edge_neighbours(tri, xy.shape[0]), "startin"
@@ -63,10 +60,8 @@ def delaunay(xy: np.ndarray, backend: str = "auto") -> tuple[np.ndarray, np.ndar
 
 def _startin_triangles(xy: np.ndarray) -> np.ndarray | None:
     """startin's triangles in the caller's vertex numbering; None if a point was not inserted."""
-    if _startinpy is None:
-        raise ImportError("the startin backend needs the package startinpy")
     order = morton_order(xy)
-    dt = _startinpy.DT()
+    dt = startinpy.DT()
     dt.snap_tolerance = _SNAP_TOLERANCE
     dt.insert(np.column_stack([xy[order], np.zeros(xy.shape[0])]))
     if dt.number_of_vertices() != xy.shape[0]:  # a point was snapped: not a TIN of all points

@@ -4,8 +4,6 @@ retention. The routes in ``service.app`` only translate HTTP to these calls.
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import logging
 import os
 import shutil
@@ -45,13 +43,7 @@ def las_facts(path: Path, name: str) -> dict[str, Any]:
         if name not in message:
             message = f"{name}: {message}"
         raise Problem(415, "unsupported-media-type", message) from None
-    if dataclasses.is_dataclass(facts):
-        data = dataclasses.asdict(facts)
-    elif hasattr(facts, "model_dump"):
-        data = facts.model_dump()
-    else:
-        data = dict(vars(facts))
-    data = json.loads(json.dumps(data, default=str))
+    data = facts.to_dict()
     data["name"] = name
     data["bytes"] = path.stat().st_size
     return {k: data[k] for k in FACT_KEYS if k in data}
