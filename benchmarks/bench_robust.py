@@ -1,4 +1,4 @@
-"""Score the detectors for spinning and airborne data (dror, snow, detached) on real and simulated clouds.
+"""Score the spinning and airborne detectors (dror, snow, detached) on real and simulated clouds.
 
 Usage::
 

@@ -131,7 +131,6 @@ def test_bad_input_is_refused():
     assert detect_detached(np.zeros((0, 3))).flagged.shape == (0,)
 
 
-@pytest.mark.skipif(not (AIRBORNE / "laspy__append-bug.laz").exists(), reason="no copy")
 def test_real_airborne_gross_outliers():
     """laspy's append-bug tile (BSD-2): the targets, recall >= 95 %, false alarms <= 0.1 %."""
     las = laspy.read(AIRBORNE / "laspy__append-bug.laz")

@@ -13,11 +13,12 @@ import laspy
 import numpy as np
 import pytest
 
+from algorithms.errors import MissingDimensionError, ParameterError
 from algorithms.stats import normal_critical_value
 from algorithms.temporal import TemporalStream, detect_temporal, windows
 from algorithms.temporal.segments import cut_segments, segment_windows
 from algorithms.temporal.windows import segment_differences, window_bounds, window_differences
-from algorithms.errors import MissingDimensionError, ParameterError
+from tests.lasfiles import write_las
 
 # --------------------------------------------------------------------------------------------
 # Slow reference, written from the paper's equations
@@ -562,15 +563,9 @@ def test_las_round_trip_near_5e6_m_and_5e5_s(tmp_path):
     """Coordinates stored as integers with a 5e6 m offset and times near 5e5 s, read by laspy."""
     xyz, t = noisy_line(5000, seed=30, step=1e-5)
     xyz[2500, 1] += 0.08
-    header = laspy.LasHeader(point_format=6, version="1.4")
-    header.offsets = np.array([5e6, 5e6, 0.0])
-    header.scales = np.array([0.001, 0.001, 0.001])
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = xyz[:, 0] + 5e6, xyz[:, 1] + 5e6, xyz[:, 2]
-    las.gps_time = t + 5e5
-    las.point_source_id = np.ones(t.size, dtype=np.uint16)
-    path = tmp_path / "line.las"
-    las.write(path)
+    path = write_las(tmp_path / "line.las", xyz + [5e6, 5e6, 0.0], gps_time=t + 5e5,
+                     point_format=6, offsets=(5e6, 5e6, 0.0),
+                     point_source_id=np.ones(t.size, dtype=np.uint16), vlrs=())
 
     back = laspy.read(path)
     xyz_file = np.c_[back.x, back.y, back.z]

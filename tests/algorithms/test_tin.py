@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import startinpy  # noqa: F401 - a required dependency: its absence is an error, not a skip
 
 from algorithms.tin import delaunay, edge_neighbours, morton_order
 
@@ -26,7 +27,6 @@ def slow_neighbours(tri: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("seed", range(3))
 def test_startin_gives_qhulls_triangles_in_the_callers_numbering(seed):
-    pytest.importorskip("startinpy")
     rng = np.random.default_rng(seed)
     xy = rng.random((500, 2)) * [80.0, 30.0] + [5e5, 5e6]  # UTM-sized, as the filter never is
     xy -= xy.mean(axis=0)
@@ -37,14 +37,12 @@ def test_startin_gives_qhulls_triangles_in_the_callers_numbering(seed):
 
 
 def test_auto_prefers_startin():
-    pytest.importorskip("startinpy")
     xy = np.random.default_rng(4).random((50, 2))
     assert delaunay(xy)[2] == "startin"
 
 
 def test_points_closer_than_a_millimetre_all_become_vertices():
     # LAS files with 0.1 mm scales: startin's default 1 mm snapping would drop points.
-    pytest.importorskip("startinpy")
     rng = np.random.default_rng(5)
     xy = np.round(rng.random((400, 2)) * 0.05, 4)
     xy = np.unique(xy, axis=0)

@@ -1,12 +1,14 @@
 """Real processes for the integration tests: redis-server, Celery workers, uvicorn, `serve`.
 
 Every process is started in its own process group and stopped by signalling the group, so the
-worker's pool processes go with it; :func:`assert_gone` checks that nothing is left.
+worker's pool processes go with it. A process that exits or does not answer in time raises
+AssertionError with the end of its log; nothing here skips.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -21,7 +23,7 @@ import httpx
 import psutil
 
 ROOT = Path(__file__).resolve().parents[2]
-REDIS_SERVER = "/usr/bin/redis-server"
+REDIS_SERVER = shutil.which("redis-server") or "/usr/bin/redis-server"
 
 
 def free_port() -> int:
@@ -42,16 +44,30 @@ def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: 
     raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
 
 
-def wait_for_port(port: int, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+def log_tail(log: Path | None, lines: int = 20) -> str:
+    """The last lines of a log file, for a failure message."""
+    if log is None or not log.exists():
+        return ""
+    tail = log.read_text(errors="replace").splitlines()[-lines:]
+    return "\n--- " + str(log) + " ---\n" + "\n".join(tail) if tail else ""
+
+
+def wait_for_port(port: int, proc: subprocess.Popen, timeout: float = 60.0,
+                  log: Path | None = None) -> None:
     def open_() -> bool:
-        assert proc.poll() is None, f"{proc.args} exited with {proc.returncode}"
+        assert proc.poll() is None, f"{proc.args} exited with {proc.returncode}{log_tail(log)}"
         try:
             with socket.create_connection(("127.0.0.1", port), timeout=0.2):
                 return True
         except OSError:
             return False
 
-    wait_for(open_, timeout, f"port {port}")
+    try:
+        wait_for(open_, timeout, f"port {port}")
+    except AssertionError as err:
+        if proc.poll() is not None:  # open_ said so, with the log
+            raise
+        raise AssertionError(f"{err}{log_tail(log)}") from None
 
 
 def stop_group(proc: subprocess.Popen, grace: float = 20.0) -> None:
@@ -94,12 +110,19 @@ class RedisServer:
     def __init__(self, folder: Path) -> None:
         self.port = free_port()
         folder.mkdir(parents=True, exist_ok=True)
-        self.proc = subprocess.Popen(
-            [REDIS_SERVER, "--port", str(self.port), "--bind", "127.0.0.1", "--dir", str(folder),
-             "--save", "", "--appendonly", "yes", "--daemonize", "no", "--loglevel", "warning"],
-            start_new_session=True,
-        )
-        wait_for_port(self.port, self.proc)
+        self.log = folder / "redis.log"
+        with open(self.log, "ab") as log:
+            self.proc = subprocess.Popen(
+                [REDIS_SERVER, "--port", str(self.port), "--bind", "127.0.0.1", "--dir",
+                 str(folder), "--save", "", "--appendonly", "yes", "--daemonize", "no",
+                 "--loglevel", "warning"],
+                stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+            )
+        try:
+            wait_for_port(self.port, self.proc, log=self.log)
+        except AssertionError:
+            stop_group(self.proc)
+            raise
         self._next_db = 0
 
     def new_url(self) -> str:
@@ -126,6 +149,7 @@ class Stack:
         self.port = 0
         self.logs = data_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
+        self.log_of: dict[int, Path] = {}
 
     @property
     def url(self) -> str:
@@ -133,8 +157,10 @@ class Stack:
 
     def _spawn(self, argv: list[str], log_name: str) -> subprocess.Popen:
         log = open(self.logs / log_name, "ab")  # noqa: SIM115 - kept for the process's life
-        return subprocess.Popen(argv, env=self.env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen(argv, env=self.env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True)
+        self.log_of[proc.pid] = self.logs / log_name
+        return proc
 
     def start_worker(self) -> subprocess.Popen:
         n = len(self.workers) + 1
@@ -154,7 +180,7 @@ class Stack:
              "--host", "127.0.0.1", "--port", str(self.port)],
             "api.log",
         )
-        wait_for_port(self.port, self.api)
+        wait_for_port(self.port, self.api, log=self.log_of[self.api.pid])
 
     def stop_api(self) -> None:
         if self.api is not None:
@@ -165,10 +191,16 @@ class Stack:
         """Until every worker answers a ping (they have connected to Redis)."""
         from celery import Celery
 
+        def answered() -> bool:
+            for proc in self.workers:
+                assert proc.poll() is None, (f"a worker exited with {proc.returncode}"
+                                             f"{log_tail(self.log_of[proc.pid])}")
+            return len(app.control.ping(timeout=0.5) or []) >= len(self.workers)
+
+        assert self.workers, "no worker to wait for"
         app = Celery(broker=self.env["REDIS_URL"])
         try:
-            wait_for(lambda: len(app.control.ping(timeout=0.5) or []) >= len(self.workers),
-                     timeout, "the workers to answer a ping", interval=0.2)
+            wait_for(answered, timeout, "the workers to answer a ping", interval=0.2)
         finally:
             app.close()
 

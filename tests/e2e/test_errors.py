@@ -15,8 +15,8 @@ from pydantic_core import to_jsonable_python
 
 from lidar_outliers.detectors import DETECTORS
 from lidar_outliers.params import PipelineParams
-from tests.e2e.clouds import write_cloud
 from tests.e2e.stack import RedisServer, Stack, running_stack
+from tests.lasfiles import write_cloud
 
 OGC = "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
 LIMIT = 300_000

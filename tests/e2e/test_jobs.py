@@ -10,8 +10,8 @@ import laspy
 import numpy as np
 import pytest
 
-from tests.e2e.clouds import write_cloud
 from tests.e2e.stack import RedisServer, Stack, running_stack, wait_job
+from tests.lasfiles import write_cloud
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,8 @@ from pathlib import Path
 import httpx
 import psutil
 
-from tests.e2e.clouds import write_cloud
 from tests.e2e.stack import ROOT, alive, descendants, free_port, wait_for, wait_job
+from tests.lasfiles import write_cloud
 
 CLI = str(Path(sys.executable).parent / "lidar-outliers")
 

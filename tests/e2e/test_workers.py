@@ -14,8 +14,8 @@ import psutil
 import pytest
 
 from lidar_outliers.jobs.store import Store
-from tests.e2e.clouds import write_cloud
 from tests.e2e.stack import RedisServer, Stack, alive, running_stack, wait_for, wait_job
+from tests.lasfiles import write_cloud
 
 #: Long enough to be caught running on an idle machine too: temporal alone finishes 300 k points
 #: in a tenth of a second, so a patch stage (about 50 k points/s) follows it.

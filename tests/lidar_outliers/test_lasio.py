@@ -11,7 +11,7 @@ import pytest
 
 from lidar_outliers import lasio
 from lidar_outliers.errors import LasFormatError
-from tests.lidar_outliers.conftest import WKT, scan_line_cloud, write_las
+from tests.lasfiles import WKT, scan_line_cloud, write_las
 
 
 def _records(vlrs) -> list[tuple[str, int, bytes]]:

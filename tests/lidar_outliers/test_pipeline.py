@@ -8,13 +8,14 @@ import laspy
 import numpy as np
 import pytest
 
+from algorithms import ground
 from lidar_outliers import lasio
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.errors import ParameterError
 from lidar_outliers.params import FLAG_BITS, PipelineParams, parse_pipeline_params
 from lidar_outliers.pipeline import resolve_stages, run_pipeline, usable_gps_time
 from lidar_outliers.process import process_file
-from tests.lidar_outliers.conftest import scan_line_cloud, write_las
+from tests.lasfiles import scan_line_cloud, write_las
 
 
 def _cloud(xyz: np.ndarray, t: np.ndarray | None, cls: np.ndarray | None = None) -> Cloud:
@@ -57,7 +58,6 @@ def test_later_stage_sees_only_points_earlier_stages_left(spiky):
 
 
 def test_classes_noise_and_ground(spiky):
-    ground = pytest.importorskip("algorithms.ground")
     xyz, t, _ = spiky
     cls = np.full(len(t), 5, np.uint8)
     params = PipelineParams.model_validate(
@@ -113,7 +113,6 @@ def test_reference_classes_confusion_counts(tmp_path, spiky):
 
 
 def test_ground_scores_with_reference_class_2(spiky):
-    pytest.importorskip("algorithms.ground")
     xyz, t, _ = spiky
     cls = np.where(xyz[:, 2] < 0, 2, 1).astype(np.uint8)
     params = PipelineParams.model_validate(

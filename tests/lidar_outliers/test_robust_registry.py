@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import laspy
@@ -15,6 +16,7 @@ from lidar_outliers.errors import MissingDimensionError, ParameterError
 from lidar_outliers.lasio import read_cloud
 from lidar_outliers.params import FLAG_BITS, parse_pipeline_params
 from lidar_outliers.pipeline import run_pipeline
+from tests.lasfiles import write_las
 
 AIRBORNE = Path(__file__).resolve().parents[1] / "data" / "airborne" / "laspy__append-bug.laz"
 SENSOR = np.array([512_345.0, 5_012_345.0, 101.5])  # sensor position in file coordinates
@@ -29,15 +31,8 @@ def sweep_file(path: Path, seed: int = 0) -> tuple[Path, np.ndarray, np.ndarray]
     flakes = rng.uniform(-5, 5, (40, 3))
     local = np.vstack(rings + [flakes])
     intensity = np.r_[np.full(sum(len(r) for r in rings), 900), np.zeros(len(flakes), int)]
-    header = laspy.LasHeader(point_format=6, version="1.4")
-    header.scales = np.array([0.001, 0.001, 0.001])
-    header.offsets = np.floor(SENSOR)
-    las = laspy.LasData(header)
-    world = local + SENSOR
-    las.x, las.y, las.z = world[:, 0], world[:, 1], world[:, 2]
-    las.intensity = intensity
-    las.gps_time = np.arange(len(world)) * 1e-5
-    las.write(path)
+    write_las(path, local + SENSOR, gps_time=np.arange(len(local)) * 1e-5, point_format=6,
+              offsets=np.floor(SENSOR), intensity=intensity, vlrs=())
     back = laspy.read(path)
     return path, np.c_[back.x, back.y, back.z] - SENSOR, np.asarray(back.intensity)
 
@@ -57,18 +52,22 @@ def test_dror_uses_the_sensor_origin_given_in_file_coordinates(tmp_path):
     assert expected.any() and not expected.all()
 
 
-def test_snow_through_the_pipeline_or_a_clear_message(tmp_path):
+def test_snow_through_the_pipeline_matches_the_algorithm(tmp_path):
     path, rel, intensity = sweep_file(tmp_path / "sweep.las", seed=1)
     cloud = read_cloud(path)
-    stage = {"detector": "snow", "origin": SENSOR.tolist()}
-    if getattr(cloud, "intensity", None) is None:
-        with pytest.raises(MissingDimensionError, match="intensity"):
-            run(cloud, stage)
-        return
-    np.testing.assert_array_equal(run(cloud, stage), detect_snow(rel, intensity).flagged)
+    np.testing.assert_array_equal(cloud.intensity, intensity)
+    expected = detect_snow(rel, intensity).flagged
+    np.testing.assert_array_equal(run(cloud, {"detector": "snow", "origin": SENSOR.tolist()}),
+                                  expected)
+    assert expected.any() and not expected.all()
 
 
-@pytest.mark.skipif(not AIRBORNE.exists(), reason="no copy of the airborne file")
+def test_snow_without_intensity_is_a_clear_message(tmp_path):
+    cloud = replace(read_cloud(sweep_file(tmp_path / "sweep.las", seed=1)[0]), intensity=None)
+    with pytest.raises(MissingDimensionError, match="intensity"):
+        run(cloud, {"detector": "snow", "origin": SENSOR.tolist()})
+
+
 def test_detached_through_the_pipeline_matches_the_algorithm():
     cloud = read_cloud(AIRBORNE)
     flags = run(cloud, {"detector": "detached"})

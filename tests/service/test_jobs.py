@@ -19,7 +19,7 @@ from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.store import JobStatus, Store
 from service.jobs import JobService
 from service.problems import Problem
-from tests.e2e.clouds import write_cloud
+from tests.lasfiles import write_cloud
 
 ROOT = Path(__file__).resolve().parents[2]
 

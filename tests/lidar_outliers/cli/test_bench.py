@@ -5,25 +5,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import laspy
 import numpy as np
 import pytest
 
 from lidar_outliers.cli import main
 from lidar_outliers.detectors import DETECTORS, Detector
 from lidar_outliers.tools import bench, paper
+from tests.lasfiles import subset_las
 
 DATA = Path(__file__).resolve().parents[2] / "data"
-
-
-def _subset_las(src: Path, dst: Path, n: int) -> np.ndarray:
-    """Write n evenly strided points of src to dst (real points and header); returns the index."""
-    las = laspy.read(str(src))
-    index = np.linspace(0, len(las.points) - 1, min(n, len(las.points))).astype(int)
-    out = laspy.LasData(las.header)
-    out.points = las.points[index]
-    out.write(str(dst))
-    return index
 
 
 @pytest.fixture
@@ -31,11 +21,11 @@ def real_folders(tmp_path):
     """Small ISPRS and airborne folders cut from the real files in tests/data."""
     isprs = tmp_path / "isprs"
     isprs.mkdir()
-    _subset_las(DATA / "isprs" / "samp21.laz", isprs / "samp21.laz", 2500)
+    subset_las(DATA / "isprs" / "samp21.laz", isprs / "samp21.laz", 2500)
     airborne = tmp_path / "airborne"
     airborne.mkdir()
-    index = _subset_las(DATA / "airborne" / "laspy__append-bug.laz",
-                        airborne / "cut.laz", 6000)
+    index = subset_las(DATA / "airborne" / "laspy__append-bug.laz",
+                       airborne / "cut.laz", 6000)
     with np.load(DATA / "airborne" / "laspy__append-bug.truth.npz") as t:
         np.savez(airborne / "cut.truth.npz", is_outlier=t["is_outlier"][index],
                  gross=t["gross"][index])

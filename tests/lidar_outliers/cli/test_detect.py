@@ -14,7 +14,7 @@ import pytest
 from lidar_outliers.cli import main
 from lidar_outliers.detectors import DETECTORS
 from lidar_outliers.lasio import inspect_las
-from tests.lidar_outliers.conftest import scan_line_cloud, write_las
+from tests.lasfiles import scan_line_cloud, write_las
 
 ROOT = Path(__file__).resolve().parents[3]
 

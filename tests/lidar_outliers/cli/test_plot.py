@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import struct
 
-import laspy
 import numpy as np
 import pytest
 
 from lidar_outliers.cli import main
 from lidar_outliers.tools import plot
+from tests.lasfiles import write_las
 
 WIDTH, HEIGHT = int(plot.FIGSIZE[0] * plot.DPI), int(plot.FIGSIZE[1] * plot.DPI)
 
@@ -26,27 +26,16 @@ def result_file(tmp_path):
     """A small result LAS as the pipeline writes it: outlier_flags and two *_score dimensions."""
     rng = np.random.default_rng(5)
     n = 3000
-    header = laspy.LasHeader(point_format=6, version="1.4")
-    header.scales = np.array([0.001, 0.001, 0.001])
-    header.offsets = np.zeros(3)
-    header.add_extra_dims([
-        laspy.ExtraBytesParams("outlier_flags", np.uint8),
-        laspy.ExtraBytesParams("temporal_score", np.float32),
-        laspy.ExtraBytesParams("patch_score", np.float32),
-    ])
-    las = laspy.LasData(header)
     x, y = rng.uniform(0, 20, n), rng.uniform(-3, 3, n)
     truth = rng.random(n) < 0.02
     z = 0.01 * rng.normal(size=n) + np.where(truth, rng.uniform(0.2, 1.0, n), 0.0)
-    las.x, las.y, las.z = x, y, z
-    las.gps_time = np.arange(n) * 1e-5
     temporal = np.abs(rng.normal(size=n)) + np.where(truth, 8.0, 0.0)
     patch = np.where(rng.random(n) < 0.1, np.nan, np.abs(rng.normal(size=n)))
-    las.temporal_score = temporal.astype(np.float32)
-    las.patch_score = patch.astype(np.float32)
-    las.outlier_flags = np.where(temporal > 3.29, 1, 0).astype(np.uint8)
-    path = tmp_path / "cloud.result.las"
-    las.write(str(path))
+    extra = {"outlier_flags": np.where(temporal > 3.29, 1, 0).astype(np.uint16),
+             "temporal_score": temporal.astype(np.float32),
+             "patch_score": patch.astype(np.float32)}
+    path = write_las(tmp_path / "cloud.result.las", np.column_stack([x, y, z]),
+                     gps_time=np.arange(n) * 1e-5, point_format=6, extra=extra, vlrs=())
     np.savez(tmp_path / "cloud.truth.npz", is_outlier=truth)
     return path
 

@@ -1,0 +1,167 @@
+"""Synthetic LAS/LAZ files for the tests: one writer, the named scenes, and real-file subsets.
+
+Every test that needs an input file writes it here; tests read files with laspy directly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import laspy
+import numpy as np
+from laspy.vlrs.known import WktCoordinateSystemVlr
+
+WKT = 'PROJCS["ETRS89 / UTM zone 32N",GEOGCS["ETRS89",DATUM["European_Terrestrial_Reference_' \
+      'System_1989",SPHEROID["GRS 1980",6378137,298.257222101]]],UNIT["metre",1]]'
+
+VERSION_FOR_FORMAT = {0: "1.2", 1: "1.2", 2: "1.2", 3: "1.2", 4: "1.3", 5: "1.3",
+                      6: "1.4", 7: "1.4", 8: "1.4", 9: "1.4", 10: "1.4"}
+
+
+def tag_vlr() -> laspy.VLR:
+    """A VLR of our own that a result file must carry over unchanged."""
+    return laspy.VLR(user_id="lidar-outliers", record_id=7, description="test vlr",
+                     record_data=b"keep me")
+
+
+def write_las(
+    path: Path,
+    xyz: np.ndarray,
+    *,
+    gps_time: np.ndarray | None = None,
+    point_format: int = 3,
+    version: str | None = None,
+    offsets: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    scales: Sequence[float] | np.ndarray = (0.001, 0.001, 0.001),
+    classification: np.ndarray | None = None,
+    point_source_id: np.ndarray | None = None,
+    intensity: np.ndarray | None = None,
+    extra: dict[str, np.ndarray] | None = None,
+    random_dims: bool = False,
+    crs: bool = False,
+    evlr: bool = False,
+    vlrs: Sequence[laspy.VLR] | None = None,
+    laz: bool | None = None,
+    seed: int = 0,
+) -> Path:
+    """Write ``xyz`` and the given dimensions to a LAS file, or LAZ when ``laz`` (default: by
+    suffix); returns ``path``.
+
+    ``extra`` adds extra-bytes dimensions typed by their values; ``random_dims`` fills every other
+    standard dimension with random values drawn from ``seed``; ``crs`` adds the WKT VLR, ``evlr``
+    an EVLR; ``vlrs`` are written first (default: :func:`tag_vlr`, ``()`` for none).
+    """
+    header = laspy.LasHeader(version=version or VERSION_FOR_FORMAT[point_format],
+                             point_format=point_format)
+    header.offsets = np.asarray(offsets, dtype=float)
+    header.scales = np.asarray(scales, dtype=float)
+    if extra:
+        header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=v.dtype) for k, v in
+                               extra.items()])
+    header.vlrs.extend([tag_vlr()] if vlrs is None else vlrs)
+    if crs:
+        if header.version.minor >= 4:
+            header.vlrs.append(WktCoordinateSystemVlr(WKT))
+        else:
+            header.vlrs.append(laspy.VLR(user_id="LASF_Projection", record_id=2112,
+                                         record_data=WKT.encode() + b"\0"))
+    if evlr:
+        header.evlrs = laspy.vlrs.vlrlist.VLRList(
+            [laspy.VLR(user_id="lidar-outliers", record_id=42, record_data=b"evlr payload")]
+        )
+    las = laspy.LasData(header)
+    n = xyz.shape[0]
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    if random_dims:
+        fill_random(las, np.random.default_rng(seed))
+    for name, values in (("gps_time", gps_time), ("classification", classification),
+                         ("point_source_id", point_source_id), ("intensity", intensity),
+                         *(extra or {}).items()):
+        if values is not None:
+            las[name] = values
+    path = Path(path)
+    las.write(str(path), do_compress=path.suffix.lower() == ".laz" if laz is None else laz)
+    assert laspy.read(str(path)).header.point_count == n
+    return path
+
+
+def fill_random(las: laspy.LasData, rng: np.random.Generator) -> None:
+    """Random values in every standard dimension other than X, Y, Z (within their bit widths)."""
+    n = len(las.points)
+    for dim in las.point_format.dimensions:
+        if dim.name in ("X", "Y", "Z") or not dim.is_standard:
+            continue
+        current = np.asarray(las[dim.name])
+        if dim.name == "gps_time":
+            las[dim.name] = rng.uniform(0, 1e6, n)
+        elif current.dtype.kind == "f":
+            las[dim.name] = rng.normal(size=current.shape).astype(current.dtype)
+        else:
+            bits = min(dim.num_bits // max(dim.num_elements, 1), 16)
+            high = 2 ** bits
+            if dim.name == "return_number" or dim.name == "number_of_returns":
+                high = 8 if las.point_format.id < 6 else 16
+            if dim.name == "classification" and las.point_format.id < 6:
+                high = 32
+            low = -(high // 2) if current.dtype.kind == "i" else 0
+            hi = high // 2 if current.dtype.kind == "i" else high
+            las[dim.name] = rng.integers(low, hi, size=current.shape).astype(current.dtype)
+
+
+def subset_las(src: Path, dst: Path, n: int) -> np.ndarray:
+    """Write n evenly strided points of src to dst (real points and header); returns the index."""
+    las = laspy.read(str(src))
+    index = np.linspace(0, len(las.points) - 1, min(n, len(las.points))).astype(int)
+    out = laspy.LasData(las.header)
+    out.points = las.points[index]
+    out.write(str(dst))
+    return index
+
+
+# ------------------------------------------------------------------------------------ scenes
+
+
+def scan_line_cloud(n: int, rng: np.random.Generator, *, spikes: int = 0,
+                    spike_size: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A mobile-scanner-like cloud: smooth 3-D profiles along time, optional spikes.
+
+    Returns xyz (n, 3) in metres near the origin, gps_time (n,) seconds from 0, and a bool mask of
+    the spiked points.
+    """
+    t = np.arange(n) * 1e-4 + rng.uniform(0, 2e-5, n)
+    phase = t * 50.0
+    xyz = np.column_stack(
+        [10 * np.cos(phase) + 2.0 * t, 10 * np.sin(phase), 0.5 * np.sin(3 * phase)]
+    )
+    xyz += rng.normal(0, 0.003, xyz.shape)
+    spiked = np.zeros(n, dtype=bool)
+    if spikes:
+        idx = rng.choice(np.arange(20, n - 20), spikes, replace=False)
+        xyz[idx, 2] += spike_size
+        spiked[idx] = True
+    return xyz, t, spiked
+
+
+def write_cloud(
+    path: Path, n: int = 4000, *, seed: int = 0, laz: bool | None = None, point_format: int = 1,
+    spikes: int = 20,
+) -> np.ndarray:
+    """Write a scan of a gently curved road profile along a straight track, ordered by
+    gps_time (near 500,000 s, coordinates near a projected easting/northing), with ``spikes``
+    points lifted by 2 m. Returns the indices of the spikes."""
+    rng = np.random.default_rng(seed)
+    t = 500_000.0 + np.arange(n) * 1e-4
+    phase = np.arange(n) * 0.05
+    x = 500_000.0 + 10.0 * (t - t[0]) + 3.0 * np.cos(phase)
+    y = 5_000_000.0 + 3.0 * np.sin(phase)
+    z = 100.0 + 0.02 * np.sin(phase) + rng.normal(0.0, 0.003, n)
+    idx = np.sort(rng.choice(np.arange(20, n - 20), size=spikes, replace=False))
+    z[idx] += 2.0
+    has_time = "gps_time" in laspy.PointFormat(point_format).dimension_names
+    write_las(path, np.column_stack([x, y, z]), gps_time=t if has_time else None,
+              point_format=point_format, version="1.2", offsets=(500_000.0, 5_000_000.0, 0.0),
+              point_source_id=np.ones(n, dtype=np.uint16),
+              classification=np.ones(n, dtype=np.uint8),
+              intensity=rng.integers(0, 1000, n).astype(np.uint16), vlrs=(), laz=laz)
+    return idx
