@@ -1,4 +1,4 @@
-"""The ``free_space`` detector: points floating where other beams saw through (issue 5).
+"""Free-space evidence for ``transient``: points floating where other beams saw through.
 
 The paper counts moving objects and airborne returns as outliers (exhaust condensation, spurious
 returns over water, a passing car); a surface test cannot see them when they are smooth (a moving
