@@ -1,4 +1,5 @@
-"""Score the detectors for spinning and airborne data (dror, snow, detached) on real and simulated clouds.
+"""Score the detectors for spinning and airborne data (dror, snow, detached) on real and
+simulated clouds.
 
 Usage::
 

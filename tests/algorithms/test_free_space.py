@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from algorithms.errors import ParameterError
 from algorithms.free_space import (
     detect_free_space,
     ray_point_test,
     scanner_origins,
     see_through_counts,
 )
-from algorithms.errors import ParameterError
 
 
 def slow_test(o: np.ndarray, p: np.ndarray, q: np.ndarray, radius: float, margin: float) -> bool:

@@ -9,6 +9,7 @@ import laspy
 import numpy as np
 import pytest
 
+from algorithms.errors import ParameterError
 from algorithms.ground import GroundParameters, classify_ground
 from algorithms.ground_raster import (
     MAX_OPENINGS,
@@ -27,7 +28,6 @@ from algorithms.ground_tin import (
     triangulate,
 )
 from algorithms.metrics import ground_scores
-from algorithms.errors import ParameterError
 
 ISPRS = Path(__file__).resolve().parents[1] / "data" / "isprs"
 SAMPLES = ["samp11", "samp21", "samp31", "samp41", "samp51", "samp61", "samp71"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from algorithms.errors import ParameterError
 from algorithms.height_field import ONE_SIDED_NZ, detect_height_field, neighbours
 from algorithms.height_field_fits import (
     MIN_HALF_POINTS,
@@ -12,7 +13,6 @@ from algorithms.height_field_fits import (
     height_field_fit,
     scores_from_terms,
 )
-from algorithms.errors import ParameterError
 
 # --------------------------------------------------------------------------------------------
 # Slow references, straight from the formulas

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from algorithms.errors import ParameterError
 from algorithms.patch import detect_patch
 from algorithms.stats import t_critical_value
 from algorithms.tiles import grid_cells, group_by_cell, spatial_batches
-from algorithms.errors import ParameterError
 from tests.algorithms.test_quadric import slow_fit
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from algorithms.section import balanced_buckets, detect_section
 from algorithms.errors import ParameterError
+from algorithms.section import balanced_buckets, detect_section
 from tests.algorithms.test_quadric import slow_fit
 
 

@@ -13,11 +13,11 @@ import laspy
 import numpy as np
 import pytest
 
+from algorithms.errors import MissingDimensionError, ParameterError
 from algorithms.stats import normal_critical_value
 from algorithms.temporal import TemporalStream, detect_temporal, windows
 from algorithms.temporal.segments import cut_segments, segment_windows
 from algorithms.temporal.windows import segment_differences, window_bounds, window_differences
-from algorithms.errors import MissingDimensionError, ParameterError
 
 # --------------------------------------------------------------------------------------------
 # Slow reference, written from the paper's equations

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from algorithms.errors import ParameterError
 from algorithms.transient import (
     detect_transient,
     floating_clusters,
     neighbour_table,
     persistent_points,
 )
-from algorithms.errors import ParameterError
 
 
 def slow_floating(xyz, t, radius, min_dt, k):
