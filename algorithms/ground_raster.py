@@ -245,3 +245,42 @@ def bilinear(
         out_a[k] = w00 * a[i0, j0] + w01 * a[i0, j1] + w10 * a[i1, j0] + w11 * a[i1, j1]
         out_b[k] = w00 * b[i0, j0] + w01 * b[i0, j1] + w10 * b[i1, j0] + w11 * b[i1, j1]
     return out_a, out_b
+
+
+def box_mean(grid: np.ndarray, r: int) -> np.ndarray:
+    """Mean over the (2r+1) x (2r+1) square around each cell, edges extended (as
+    ``scipy.ndimage.uniform_filter(mode="nearest")``), by running sums along each axis."""
+    out = np.asarray(grid, dtype=np.float64)
+    if r <= 0:
+        return out.copy()
+    for axis in (0, 1):
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (r + 1, r)
+        c = np.cumsum(np.pad(out, pad, mode="edge"), axis=axis)
+        hi = np.take(c, np.arange(2 * r + 1, c.shape[axis]), axis=axis)
+        lo = np.take(c, np.arange(0, c.shape[axis] - 2 * r - 1), axis=axis)
+        out = (hi - lo) / (2 * r + 1)
+    return out
+
+
+def terrain_grade(
+    geo: RasterGeometry, xy: np.ndarray, lowest: np.ndarray, window: float
+) -> np.ndarray:
+    """The terrain's own grade (tan of its slope) under every point, (n,); zeros for window 0.
+
+    The filled lowest-point raster is opened with a square of ``window`` metres (objects narrower
+    than the window are cut away, the terrain below them kept: an opening leaves a plane of any
+    slope unchanged) and averaged over the same square (the trend of the relief at that scale);
+    the grade is the magnitude of the trend's gradient, sampled bilinearly. Steep hillsides get
+    a high grade, flat land with buildings a low one: the step-edge threshold of a triangle is
+    the terrain's grade plus tan(slope_threshold), so a hillside is not peeled like a roof.
+    """
+    n = xy.shape[0]
+    r = int(round(window / (2.0 * geo.cell)))
+    if window <= 0 or r < 1:
+        return np.zeros(n)
+    trend = box_mean(square_opening(np.ascontiguousarray(lowest, dtype=np.float64), r), r)
+    gx = np.gradient(trend, geo.cell, axis=0) if geo.shape[0] > 1 else np.zeros(geo.shape)
+    gy = np.gradient(trend, geo.cell, axis=1) if geo.shape[1] > 1 else np.zeros(geo.shape)
+    g = np.hypot(gx, gy)
+    return bilinear(g, g, (xy - geo.lo) / geo.cell - 0.5)[0]

@@ -167,7 +167,7 @@ def adjust_step_edges(
     grad: np.ndarray,
     is_edge: np.ndarray,
     edge_list: np.ndarray,
-    tan_thr: float,
+    tan_thr: np.ndarray,
     min_step: float,
     prop_sum: np.ndarray,
     prop_cnt: np.ndarray,
@@ -205,7 +205,8 @@ def adjust_step_edges(
             dx = xy[v, 0] - xy[low, 0]
             dy = xy[v, 1] - xy[low, 1]
             rise = z[v] - z[low]
-            if rise > min_step and rise > tan_thr * math.hypot(dx, dy):
+            thr = 0.5 * (tan_thr[v] + tan_thr[low])
+            if rise > min_step and rise > thr * math.hypot(dx, dy):
                 productive[i] = True
                 if prop_cnt[v] == 0:
                     touched[n_touched] = v
@@ -224,7 +225,7 @@ def iterate_step_edges(
     nbr: np.ndarray,
     inv: np.ndarray,
     valid: np.ndarray,
-    tan_thr: float,
+    tan_thr: np.ndarray,
     min_step: float,
     max_iterations: int,
 ) -> tuple[np.ndarray, np.ndarray, list[int], list[int], int]:
@@ -240,14 +241,16 @@ def iterate_step_edges(
     ptr, vt = vertex_triangles(tri, n)
     grad = np.zeros((m, 2))
     is_edge = np.zeros(m, np.bool_)
-    tan2 = tan_thr * tan_thr
+    tan2 = np.empty(m)
     n_edge = 0
     for t in range(m):  # step 1: slope of every triangle
+        thr = (tan_thr[tri[t, 0]] + tan_thr[tri[t, 1]] + tan_thr[tri[t, 2]]) / 3.0
+        tan2[t] = thr * thr
         if valid[t]:
             gx, gy = _gradient(t, tri, z, inv)
             grad[t, 0] = gx
             grad[t, 1] = gy
-            if gx * gx + gy * gy > tan2:
+            if gx * gx + gy * gy > tan2[t]:
                 is_edge[t] = True
                 n_edge += 1
     edge_list = np.empty(n_edge, np.int64)
@@ -315,7 +318,7 @@ def iterate_step_edges(
                 gx, gy = _gradient(t, tri, z, inv)
                 grad[t, 0] = gx
                 grad[t, 1] = gy
-                is_edge[t] = gx * gx + gy * gy > tan2
+                is_edge[t] = gx * gx + gy * gy > tan2[t]
             if is_edge[t]:
                 cand[k] = t
                 k += 1
@@ -434,3 +437,80 @@ def find_low_outliers(
         return np.zeros(xy.shape[0], bool), z.copy()
     ref = _low_reference(xy, z)
     return z < ref - depth, ref
+
+
+@njit(cache=True)
+def _find(parent: np.ndarray, v: int) -> int:
+    root = v
+    while parent[root] != root:
+        root = parent[root]
+    while parent[v] != root:  # path compression
+        parent[v], v = root, parent[v]
+    return root
+
+
+@njit(cache=True)
+def enclosed_components(
+    xy: np.ndarray,
+    z: np.ndarray,
+    tri: np.ndarray,
+    nbr: np.ndarray,
+    candidate: np.ndarray,
+    tan_thr: np.ndarray,
+    min_step: float,
+    min_drop_fraction: float,
+) -> np.ndarray:
+    """Candidates whose connected region of the TIN is stepped down on (almost) all sides.
+
+    Candidates (the iteration's object points) are joined into regions by the TIN edges between
+    them. Each edge from a region to a point outside it is a *drop* when the region's end is
+    higher by more than ``min_step`` and by more than ``tan_thr`` times the edge's length (a step
+    edge). A region is *enclosed* when at least ``min_drop_fraction`` of its boundary edges are
+    drops and it touches neither the TIN's hull (where its boundary is unknown) nor nothing.
+    Returns (n,) bool: True for the candidates in enclosed regions.
+    """
+    n = z.shape[0]
+    parent = np.arange(n)
+    m = tri.shape[0]
+    for t in range(m):
+        for k in range(3):
+            u = nbr[t, k]
+            if u >= 0 and u < t:
+                continue  # each edge once: from the triangle with the larger index, or the hull
+            a = tri[t, (k + 1) % 3]
+            b = tri[t, (k + 2) % 3]
+            if candidate[a] and candidate[b]:
+                ra, rb = _find(parent, a), _find(parent, b)
+                if ra != rb:
+                    parent[max(ra, rb)] = min(ra, rb)
+    boundary = np.zeros(n, np.int64)
+    drops = np.zeros(n, np.int64)
+    on_hull = np.zeros(n, np.bool_)
+    for t in range(m):
+        for k in range(3):
+            u = nbr[t, k]
+            if u >= 0 and u < t:
+                continue
+            a = tri[t, (k + 1) % 3]
+            b = tri[t, (k + 2) % 3]
+            if u < 0:
+                if candidate[a]:
+                    on_hull[_find(parent, a)] = True
+                if candidate[b]:
+                    on_hull[_find(parent, b)] = True
+            if candidate[a] == candidate[b]:
+                continue
+            inner, outer = (a, b) if candidate[a] else (b, a)
+            r = _find(parent, inner)
+            boundary[r] += 1
+            rise = z[inner] - z[outer]
+            dist = math.hypot(xy[inner, 0] - xy[outer, 0], xy[inner, 1] - xy[outer, 1])
+            if rise > min_step and rise > 0.5 * (tan_thr[inner] + tan_thr[outer]) * dist:
+                drops[r] += 1
+    out = np.zeros(n, np.bool_)
+    for v in range(n):
+        if candidate[v]:
+            r = _find(parent, v)
+            out[v] = (not on_hull[r] and boundary[r] > 0
+                      and drops[r] >= min_drop_fraction * boundary[r])
+    return out

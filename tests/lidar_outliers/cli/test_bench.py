@@ -98,3 +98,15 @@ def test_bad_folder_is_one_line_usage_error(tmp_path, capsys):
         main(["bench", "--quick", "--isprs", str(tmp_path / "missing")])
     assert exc.value.code == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_leave_one_sample_out_chooses_on_the_other_samples():
+    # rows: configurations, columns: samples (total error %)
+    errors = np.array([[1.0, 9.0, 1.0],
+                       [2.0, 2.0, 2.0],
+                       [9.0, 1.0, 1.5]])
+    chosen, held = bench.loo_choices(errors)
+    # without sample 0 the means are 5, 2, 1.25 -> config 2; without 1: 1, 2, 5.25 -> config 0;
+    # without 2: 5, 2, 5 -> config 1
+    np.testing.assert_array_equal(chosen, [2, 0, 1])
+    np.testing.assert_array_equal(held, [9.0, 9.0, 2.0])
