@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 from lidar_outliers import lasio
-from lidar_outliers.atomic import atomic_path
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.settings import Settings
@@ -254,8 +253,7 @@ class JobService:
         _, path = self.result_file(user, job_id, "cloud")
         png = path.with_name("preview.png")
         if not png.exists():
-            with atomic_path(png) as tmp:
-                render_preview(path, tmp)
+            render_preview(path, png)
         return png
 
     # ---- retention ---------------------------------------------------------------------------

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from lidar_outliers.atomic import atomic_path
 from lidar_outliers.errors import LasFormatError, ParameterError
 from lidar_outliers.output import FLAGS_DIMENSION as FLAGS
 from lidar_outliers.output import FLAGS_DTYPE
@@ -231,7 +232,8 @@ def render(
     for i, (name, score) in enumerate(res.scores.items()):
         _histogram(fig.add_subplot(grid[2, i]), name, score, crits[name], truth)
     png_path = Path(png_path)
-    fig.savefig(png_path, dpi=DPI, format="png")
+    with atomic_path(png_path) as tmp:
+        fig.savefig(tmp, dpi=DPI, format="png")
     plt.close(fig)
     return png_path
 
