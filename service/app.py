@@ -95,7 +95,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.settings = settings
-    app.state.service = JobService(settings, Store(settings.db_path))
+    # opening the store migrates the database's schema (safely when several APIs start at once)
+    app.state.service = JobService(settings, Store(settings.database_url))
     app.add_exception_handler(Problem, _on_problem)
     app.add_exception_handler(RequestValidationError, _on_validation)
     app.add_exception_handler(StarletteHTTPException, _on_http)

@@ -1,5 +1,8 @@
 """The service's logic, free of FastAPI: authentication, submission, status, results, dismissal,
 retention. The routes in ``service.app`` only translate HTTP to these calls.
+
+Files go through the storage interface only (:mod:`lidar_outliers.jobs.storage`): a received
+request body is checked on this host, then moved into the storage; results are read from it.
 """
 
 from __future__ import annotations
@@ -7,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import uuid
 from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -16,13 +20,31 @@ from lidar_outliers import lasio
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.settings import Settings
-from lidar_outliers.jobs.store import ACTIVE, FINAL, Job, JobStatus, Store, Upload, User
+from lidar_outliers.jobs.storage import (
+    ObjectInfo,
+    ObjectMissing,
+    Storage,
+    StorageError,
+    open_storage,
+)
+from lidar_outliers.jobs.store import (
+    ACTIVE,
+    FINAL,
+    Job,
+    JobStatus,
+    QuotaExceeded,
+    Store,
+    TooManyActiveJobs,
+    Upload,
+    User,
+)
 from lidar_outliers.params import PipelineParams
 from lidar_outliers.tools.plot import render_preview
 from lidar_outliers.trajectory import describe_trajectory, read_trajectory
 from service import queue
-from service.problems import Problem
+from service.problems import Problem, storage_unavailable
 from service.processes import CLOUD_INPUT, TRAJECTORY_INPUT, preflight, resolve_inputs
+from service.uploads import too_large
 
 log = logging.getLogger(__name__)
 
@@ -49,9 +71,11 @@ def las_facts(path: Path, name: str) -> dict[str, Any]:
 
 
 class JobService:
-    def __init__(self, settings: Settings, store: Store, enqueue: Enqueue | None = None):
+    def __init__(self, settings: Settings, store: Store, enqueue: Enqueue | None = None,
+                 storage: Storage | None = None):
         self.settings = settings
         self.store = store
+        self.storage = storage or open_storage(settings)
         self.enqueue = enqueue or (lambda job_id, priority: queue.enqueue(settings, job_id,
                                                                            priority))
 
@@ -68,16 +92,20 @@ class JobService:
                           headers={"WWW-Authenticate": 'Bearer error="invalid_token"'})
         return user
 
+    def too_many_jobs(self, active: int) -> Problem:
+        return Problem(
+            429, "too-many-jobs",
+            f"you have {active} queued or running jobs, the limit is "
+            f"{self.settings.max_active_jobs_per_user}; wait for one to finish or DELETE one",
+            headers={"Retry-After": str(self.settings.retry_after_seconds)},
+        )
+
     def check_active_limit(self, user: User) -> int:
-        """Number of the user's active jobs; 429 when no further one is allowed."""
+        """Number of the user's active jobs; 429 when no further one is allowed. An early
+        answer before a body is read; :meth:`submit` checks again, atomically."""
         active = self.store.count_active(user.id)
         if active >= self.settings.max_active_jobs_per_user:
-            raise Problem(
-                429, "too-many-jobs",
-                f"you have {active} queued or running jobs, the limit is "
-                f"{self.settings.max_active_jobs_per_user}; wait for one to finish or DELETE one",
-                headers={"Retry-After": str(self.settings.retry_after_seconds)},
-            )
+            raise self.too_many_jobs(active)
         return active
 
     def upload_limit(self, user: User) -> tuple[int, bool]:
@@ -89,33 +117,44 @@ class JobService:
 
     @property
     def incoming_dir(self) -> Path:
-        return self.settings.uploads_dir / "incoming"
+        return self.settings.incoming_dir
 
     # ---- uploads -----------------------------------------------------------------------------
 
     def store_upload(self, user: User, part: Path, name: str, kind: str = "cloud") -> Upload:
         """Keep a checked upload: a LAS/LAZ cloud (415 otherwise) or, with ``kind``
-        ``"trajectory"``, a trajectory text file (422 otherwise)."""
-        if kind == "trajectory":
+        ``"trajectory"``, a trajectory text file (422 otherwise). The quota check and the record
+        are one transaction; the file is stored after it. The part is never left behind."""
+        try:
+            if kind == "trajectory":
+                facts = trajectory_facts(part, name)
+                suffix = ".txt"
+            else:
+                facts = las_facts(part, name)
+                suffix = ".laz" if facts.get("compressed") else ".las"
+            upload_id = uuid.uuid4().hex
+            key = layout.upload_key(user.id, upload_id, suffix)
             try:
-                trajectory_facts(part, name)
-            except BaseException:
-                part.unlink(missing_ok=True)
+                upload = self.store.add_upload(
+                    user.id, name, key, part.stat().st_size, facts, upload_id=upload_id,
+                    max_stored_bytes=self.settings.max_stored_bytes_per_user)
+            except QuotaExceeded as exc:
+                raise too_large(exc.left, True) from None
+            try:
+                self.storage.put_file(key, part, move=True)
+            except BaseException as exc:
+                self.store.delete_upload(upload.id)
+                if isinstance(exc, StorageError):
+                    raise storage_unavailable(exc) from None
                 raise
-            suffix = ".txt"
-        else:
-            facts = las_facts_or_remove(part, name)
-            suffix = ".laz" if facts.get("compressed") else ".las"
-        folder = self.settings.uploads_dir / str(user.id)
-        folder.mkdir(parents=True, exist_ok=True)
-        final = folder / (part.stem + suffix)
-        os.replace(part, final)
-        return self.store.add_upload(user.id, name, final, final.stat().st_size)
+            return upload
+        finally:
+            part.unlink(missing_ok=True)
 
     def find_upload(self, user: User, href: str, what: str = CLOUD_INPUT) -> Upload:
         upload_id = href.rstrip("/").rsplit("/", 1)[-1]
         upload = self.store.get_upload(upload_id, user.id)
-        if upload is None or not Path(upload.path).exists():
+        if upload is None or self._info(upload.key) is None:
             raise Problem(422, "invalid-parameter",
                           f"{what}.href: no upload {href!r} of yours; POST the file to /uploads "
                           "first and use the href it answers", errors=[
@@ -131,6 +170,28 @@ class JobService:
                           "(POST /uploads?kind=trajectory first)",
                           errors=[{"parameter": "trajectory", "message": "missing href"}])
         return self.find_upload(user, href, TRAJECTORY_INPUT)
+
+    def _info(self, key: str) -> ObjectInfo | None:
+        try:
+            return self.storage.info(key)
+        except StorageError as exc:
+            raise storage_unavailable(exc) from None
+
+    def _upload_facts(self, upload: Upload, kind: str) -> dict[str, Any]:
+        """The facts recorded with a stored upload (read from the file when it has none)."""
+        if upload.facts is not None:
+            return dict(upload.facts)
+        folder = layout.scratch(self.settings, "facts")
+        try:
+            local = folder / upload.key.rsplit("/", 1)[-1]
+            self.storage.get_file(upload.key, local)
+            if kind == "trajectory":
+                return trajectory_facts(local, upload.name)
+            return las_facts(local, upload.name)
+        except StorageError as exc:
+            raise storage_unavailable(exc) from None
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
 
     # ---- jobs --------------------------------------------------------------------------------
 
@@ -152,50 +213,77 @@ class JobService:
         return params.model_dump(mode="json"), cloud
 
     def submit(
-        self, user: User, process_id: str, params: dict[str, Any], source: Path, name: str,
-        *, move: bool, trajectory: Path | None = None, trajectory_name: str = "trajectory.txt",
-        move_trajectory: bool = True,
+        self, user: User, process_id: str, params: dict[str, Any], source: Path | Upload,
+        name: str | None = None, *, trajectory: Path | Upload | None = None,
+        trajectory_name: str = "trajectory.txt",
     ) -> Job:
         """Create a job from a validated file and parameters and queue it.
 
-        ``move``: the source is a fresh upload part (renamed into the job folder); otherwise it
-        is a stored upload (hard-linked, so the upload can serve further jobs). ``trajectory``:
-        an optional trajectory file, checked (422 when unusable) and moved (a received part,
-        ``move_trajectory``) or linked (a stored upload) into the job folder; its facts appear
-        in the job's ``input_file``."""
+        ``source`` (and ``trajectory``): a file received on this host (a request part: moved
+        into the storage, and removed when refused) or a stored upload (copied inside the
+        storage, so it serves further jobs). In order: the files are checked (415 / 422); the
+        limits of active jobs (429) and stored bytes (413) are checked and the job recorded in
+        one transaction; its files are stored and it is queued. When that last step fails, the
+        job is failed and its bytes released (503)."""
+        received = [p for p in (source, trajectory) if isinstance(p, Path)]
         try:
-            active = self.check_active_limit(user)
-            facts = las_facts(source, name)
+            if isinstance(source, Upload):
+                name = name or source.name
+                facts = self._upload_facts(source, "cloud")
+            else:
+                name = name or source.name
+                facts = las_facts(source, name)
+            facts = {k: facts[k] for k in FACT_KEYS if k in facts} | {"name": name}
             preflight(PipelineParams.model_validate(params), int(facts.get("point_format", 0)))
-            if trajectory is not None:
+            if isinstance(trajectory, Upload):
+                facts["trajectory"] = self._upload_facts(trajectory, "trajectory")
+            elif trajectory is not None:
                 facts["trajectory"] = trajectory_facts(trajectory, trajectory_name)
-        except BaseException:
-            if move:  # a refused upload is not kept
-                source.unlink(missing_ok=True)
-            if trajectory is not None and move_trajectory:
-                trajectory.unlink(missing_ok=True)
-            raise
-        job_id = os.urandom(16).hex()
-        laz = bool(facts.get("compressed"))
-        target = layout.input_path(self.settings, job_id, laz)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        _place(source, target, move)
-        stored = target.stat().st_size
-        if trajectory is not None:
-            traj_target = layout.trajectory_path(self.settings, job_id)
-            _place(trajectory, traj_target, move_trajectory)
-            stored += traj_target.stat().st_size
-        job = self.store.create_job(user.id, process_id, params, facts, laz,
-                                    stored_bytes=stored, job_id=job_id)
+            laz = bool(facts.get("compressed"))
+            size = sum(p.bytes if isinstance(p, Upload) else p.stat().st_size
+                       for p in (source, trajectory) if p is not None)
+            try:
+                job = self.store.create_job(
+                    user.id, process_id, params, facts, laz, stored_bytes=size,
+                    job_id=os.urandom(16).hex(),
+                    max_active=self.settings.max_active_jobs_per_user,
+                    max_stored_bytes=self.settings.max_stored_bytes_per_user)
+            except TooManyActiveJobs as exc:
+                raise self.too_many_jobs(exc.active) from None
+            except QuotaExceeded as exc:
+                raise too_large(exc.left, True) from None
+            try:
+                self._place(source, layout.input_key(job.id, laz))
+                if trajectory is not None:
+                    self._place(trajectory, layout.trajectory_key(job.id))
+                # a user's n-th active job waits behind every other user's earlier ones
+                self.enqueue(job.id, min(job.active_before, 9))
+            except Exception as exc:
+                self._abandon(job, exc)
+                if isinstance(exc, StorageError):
+                    raise storage_unavailable(exc) from None
+                raise Problem(503, "service-unavailable",
+                              f"the job queue (Redis) is not reachable: {exc}") from None
+            return job
+        finally:
+            for path in received:  # stored or refused: a received part is not kept
+                path.unlink(missing_ok=True)
+
+    def _place(self, source: Path | Upload, key: str) -> None:
+        if isinstance(source, Upload):
+            self.storage.copy(source.key, key)
+        else:
+            self.storage.put_file(key, source, move=True)
+
+    def _abandon(self, job: Job, exc: Exception) -> None:
+        """A recorded job that could not be stored or queued: failed, its bytes released."""
+        what = "store the input" if isinstance(exc, StorageError) else "queue the job"
+        self.store.transition(job.id, JobStatus.failed, f"could not {what}: {exc}",
+                              stored_bytes=0)
         try:
-            # a user's n-th active job waits behind every other user's earlier ones
-            self.enqueue(job.id, min(active, 9))
-        except Exception as exc:
-            self.store.transition(job.id, JobStatus.failed, f"could not queue the job: {exc}")
-            shutil.rmtree(target.parent, ignore_errors=True)
-            raise Problem(503, "service-unavailable",
-                          f"the job queue (Redis) is not reachable: {exc}") from None
-        return job
+            self.storage.delete_prefix(layout.job_prefix(job.id))
+        except StorageError:
+            log.exception("could not remove the files of job %s", job.id)
 
     def get(self, user: User, job_id: str) -> Job:
         job = self.store.get_job(job_id)
@@ -213,10 +301,14 @@ class JobService:
         if job.status is not JobStatus.dismissed:
             job = self.store.transition(job_id, JobStatus.dismissed, "dismissed by the user",
                                         stored_bytes=0) or self.get(user, job_id)
-        shutil.rmtree(layout.job_dir(self.settings, job_id), ignore_errors=True)
+        try:
+            self.storage.delete_prefix(layout.job_prefix(job_id))
+        except StorageError:  # retention removes them later
+            log.exception("could not remove the files of job %s", job_id)
         return job
 
-    def result_file(self, user: User, job_id: str, name: str) -> tuple[Job, Path]:
+    def result(self, user: User, job_id: str, name: str) -> tuple[Job, str, ObjectInfo]:
+        """A successful job's ``cloud`` or ``statistics``: the job, the key and its info."""
         job = self.get(user, job_id)
         if job.status is not JobStatus.successful:
             if job.status in ACTIVE:
@@ -227,34 +319,66 @@ class JobService:
                           else "no-such-job",
                           f"job {job_id} is {job.status.value}: {job.message}; it has no results")
         if name == "statistics":
-            path = layout.statistics_path(self.settings, job_id)
+            key = layout.statistics_key(job_id)
         else:
-            path = layout.result_path(self.settings, job_id, job.laz)
-        if not path.exists():
+            key = layout.result_key(job_id, job.laz)
+        info = self._info(key)
+        if info is None:
             raise Problem(404, "no-such-job", f"the results of job {job_id} were deleted")
-        return job, path
+        return job, key, info
 
-    def cloud_file(self, user: User, job_id: str, keep: str, laz: bool | None) -> Path:
-        """The flagged cloud, or a derived file (other format, inliers or outliers only),
-        made on first request and kept beside the result."""
-        job, path = self.result_file(user, job_id, "cloud")
+    def cloud(self, user: User, job_id: str, keep: str,
+              laz: bool | None) -> tuple[str, ObjectInfo, bool]:
+        """The flagged cloud, or a derived file (other format, inliers or outliers only) made
+        on first request and stored beside the result: its key, its info, whether LAZ."""
+        job, key, info = self.result(user, job_id, "cloud")
         laz = job.laz if laz is None else laz
         if keep == "all" and laz == job.laz:
-            return path
-        derived = path.with_name(f"cloud-{keep}.{'laz' if laz else 'las'}")
-        if not derived.exists():
-            if keep == "all":
-                lasio.convert(path, derived, laz)
-            else:
-                lasio.write_filtered(path, derived, keep, laz)
-        return derived
+            return key, info, laz
 
-    def preview_file(self, user: User, job_id: str) -> Path:
-        _, path = self.result_file(user, job_id, "cloud")
-        png = path.with_name("preview.png")
-        if not png.exists():
-            render_preview(path, png)
-        return png
+        def make(result: Path, out: Path) -> None:
+            if keep == "all":
+                lasio.convert(result, out, laz)
+            else:
+                lasio.write_filtered(result, out, keep, laz)
+
+        derived = layout.derived_key(job_id, keep, laz)
+        return derived, self._derive(job, derived, make), laz
+
+    def preview(self, user: User, job_id: str) -> tuple[str, ObjectInfo]:
+        """A PNG of the flagged cloud, rendered on first request and stored beside it."""
+        job, _, _ = self.result(user, job_id, "cloud")
+        key = layout.preview_key(job_id)
+        return key, self._derive(job, key, render_preview, statistics=True)
+
+    def _derive(self, job: Job, key: str, make: Callable[[Path, Path], Any],
+                statistics: bool = False) -> ObjectInfo:
+        """The object under ``key``, made from a local copy of the job's result when missing.
+        Two requests at once may both make it; each put is whole and they are equal."""
+        info = self._info(key)
+        if info is not None:
+            return info
+        folder = layout.scratch(self.settings, f"derive-{job.id}")
+        try:
+            result_key = layout.result_key(job.id, job.laz)
+            result = folder / result_key.rsplit("/", 1)[-1]
+            self.storage.get_file(result_key, result)
+            if statistics:  # beside the result, where the preview looks for it
+                self.storage.get_file(layout.statistics_key(job.id), folder / "statistics.json")
+            out = folder / ("out-" + key.rsplit("/", 1)[-1])
+            make(result, out)
+            self.storage.put_file(key, out, move=True)
+        except ObjectMissing:
+            raise Problem(404, "no-such-job",
+                          f"the results of job {job.id} were deleted") from None
+        except StorageError as exc:
+            raise storage_unavailable(exc) from None
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+        info = self._info(key)
+        if info is None:  # dismissed meanwhile
+            raise Problem(404, "no-such-job", f"the results of job {job.id} were deleted")
+        return info
 
     # ---- retention ---------------------------------------------------------------------------
 
@@ -266,28 +390,18 @@ class JobService:
         removed = 0
         for job in self.store.jobs_finished_before(cutoff):
             if job.status in FINAL:
-                shutil.rmtree(layout.job_dir(self.settings, job.id), ignore_errors=True)
+                self.storage.delete_prefix(layout.job_prefix(job.id))
                 self.store.delete_job(job.id)
                 removed += 1
         for upload in self.store.uploads_created_before(cutoff):
-            Path(upload.path).unlink(missing_ok=True)
+            self.storage.delete(upload.key)
             self.store.delete_upload(upload.id)
             removed += 1
         for part in self.incoming_dir.glob("*.part") if self.incoming_dir.exists() else []:
             if datetime.fromtimestamp(part.stat().st_mtime, UTC) < now - timedelta(days=1):
                 part.unlink(missing_ok=True)
+        layout.sweep_scratch(self.settings, older_than=self.settings.visibility_timeout)
         return removed
-
-
-def _place(source: Path, target: Path, move: bool) -> None:
-    """Rename a received part into place, or hard-link (copy) a stored upload."""
-    if move:
-        os.replace(source, target)
-        return
-    try:
-        os.link(source, target)
-    except OSError:
-        shutil.copyfile(source, target)
 
 
 def trajectory_facts(path: Path, name: str) -> dict[str, Any]:
@@ -298,14 +412,6 @@ def trajectory_facts(path: Path, name: str) -> dict[str, Any]:
         raise Problem(422, "invalid-parameter", str(exc),
                       errors=[{"parameter": "trajectory", "message": str(exc)}]) from None
     return describe_trajectory(traj, name)
-
-
-def las_facts_or_remove(part: Path, name: str) -> dict[str, Any]:
-    try:
-        return las_facts(part, name)
-    except BaseException:
-        part.unlink(missing_ok=True)
-        raise
 
 
 def status_document(job: Job, base_url: str = "") -> dict[str, Any]:

@@ -30,7 +30,10 @@ PROBLEMS: dict[str, tuple[str, str]] = {
     "job-failed": ("Job failed", "The job's message says why."),
     "not-found": ("Not found", "GET /docs lists the routes."),
     "method-not-allowed": ("Method not allowed", "GET /docs lists the methods of each route."),
-    "service-unavailable": ("Service unavailable", "Redis or the workers are not reachable."),
+    "range-not-satisfiable": ("Range not satisfiable", "Ask for byte ranges within the "
+                              "file's size (Content-Range: bytes */size), e.g. bytes=0-1023."),
+    "service-unavailable": ("Service unavailable", "Redis, the workers, the database or the "
+                            "file storage are not reachable."),
     "internal-error": ("Internal error", "Report it with the time of the request."),
 }
 OGC_SLUGS = {"no-such-process", "no-such-job", "result-not-ready"}
@@ -68,3 +71,8 @@ class Problem(Exception):
             "detail": self.detail,
             **self.extra,
         }
+
+
+def storage_unavailable(exc: Exception) -> Problem:
+    """503 for a storage that failed (the API goes on; the client may retry)."""
+    return Problem(503, "service-unavailable", f"the file storage is not usable: {exc}")

@@ -184,7 +184,7 @@ def _development_key(settings) -> str | None:
     """Create the user ``dev`` when the store has no user at all (development only)."""
     if settings.environment != "dev":
         return None
-    store = Store(settings.db_path)
+    store = Store(settings.database_url)
     if store.list_users():
         return None
     _, key = store.add_user("dev")

@@ -1,8 +1,9 @@
 """`lidar-outliers users add|list|revoke`: API keys of the job service.
 
-Acts on the store under ``DATA_DIR`` (default ``./data`` in the project root), the same one
-`make run` uses. ``add`` prints the new key alone on the last line so scripts can capture it:
-``KEY=$(lidar-outliers users add alice | tail -n 1)``.
+Acts on the database the API uses: ``DATABASE_URL``, else the SQLite file under ``DATA_DIR``
+(default ``./data`` in the project root), the same one `make run` uses. Its schema is migrated
+first when it is older than this version. ``add`` prints the new key alone on the last line so
+scripts can capture it: ``KEY=$(lidar-outliers users add alice | tail -n 1)``.
 """
 
 from __future__ import annotations
@@ -10,6 +11,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+import sqlalchemy as sa
+
+from lidar_outliers.jobs.database import describe
 from lidar_outliers.jobs.settings import get_settings
 from lidar_outliers.jobs.store import Store, StoreError
 
@@ -30,11 +34,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     settings = get_settings()
-    store = Store(settings.db_path)
     try:
+        store = Store(settings.database_url)
         if args.users_action == "add":
             user, key = store.add_user(args.name)
-            print(f"created user {user.name!r} in {settings.db_path}; its key (shown only "
+            print(f"created user {user.name!r} in {store.describe()}; its key (shown only "
                   "once) is on the next line:")
             print(key, flush=True)
         elif args.users_action == "list":
@@ -47,5 +51,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"revoked {args.name!r}")
     except StoreError as exc:
         print(f"lidar-outliers: error: {exc}", file=sys.stderr)
+        return 1
+    except sa.exc.OperationalError as exc:  # unreachable server, wrong password, ...
+        reason = str(exc.orig).strip().splitlines()[0] if exc.orig else str(exc)
+        print(f"lidar-outliers: error: the database {describe(settings.database_url)} cannot "
+              f"be used: {reason}", file=sys.stderr)
         return 1
     return 0

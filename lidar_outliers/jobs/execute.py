@@ -1,7 +1,9 @@
 """One delivery of a job: run its pipeline over its input and record the outcome.
 
 :func:`execute_job` is the whole run, callable without Celery (the worker's task calls it). The
-job's state changes go through :meth:`lidar_outliers.jobs.store.Store.transition` only.
+job's state changes go through :meth:`lidar_outliers.jobs.store.Store.transition` only. The
+input is copied from the storage to a local scratch folder, the pipeline runs there, and the
+result and the statistics are put back; the scratch folder is removed whatever happens.
 """
 
 from __future__ import annotations
@@ -10,16 +12,20 @@ import logging
 import os
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from lidar_outliers.atomic import write_json_atomic
 from lidar_outliers.errors import CancelledError, LidarOutliersError
 from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.settings import Settings
+from lidar_outliers.jobs.storage import Storage, StorageError, open_storage
 from lidar_outliers.jobs.store import FINAL, JobStatus, Store
 from lidar_outliers.params import PipelineParams
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 #: Write progress to the store at most this often (seconds) unless the percentage changes.
 PROGRESS_INTERVAL = 0.5
@@ -50,85 +56,116 @@ class Progress:
 def execute_job(
     settings: Settings, store: Store, job_id: str,
     time_limit_errors: tuple[type[BaseException], ...] = (),
+    storage: Storage | None = None,
 ) -> JobStatus | None:
     """Run one delivery of a job; return its final status (None when there was nothing to do).
 
     ``time_limit_errors``: exceptions that mean the job ran out of time (the queue's own soft
-    time limit); the job then fails with a message naming the limit.
+    time limit); the job then fails with a message naming the limit. ``storage``: where the
+    job's objects are (default: the one the settings name).
     """
+    storage = storage or open_storage(settings)
     job = store.get_job(job_id)
     if job is None or job.status in FINAL:
         return None  # dismissed (or deleted by retention) before a worker got to it
-    folder = layout.job_dir(settings, job_id)
+    prefix = layout.job_prefix(job_id)
     if job.status is JobStatus.running and job.attempts >= settings.max_attempts:
         # every earlier delivery died with its worker (SIGKILL, out of memory): give up
         store.transition(
             job_id, JobStatus.failed,
             f"the worker running this job died {job.attempts} times (killed, e.g. out of "
             "memory); the job is not retried",
-            stored_bytes=layout.folder_bytes(folder) if folder.exists() else 0,
+            stored_bytes=_quietly(storage.prefix_bytes, prefix),
         )
         return JobStatus.failed
     started = store.transition(job_id, JobStatus.running, "reading the cloud",
                                worker_pid=os.getpid())
     if started is None:
         return None
+    # folders of deliveries killed on this host: older than any job may run
+    layout.sweep_scratch(settings, older_than=settings.visibility_timeout)
+    scratch = layout.scratch(settings, f"job-{job_id}")
     try:
-        _run(settings, store, job_id)
+        stored = _run(settings, store, storage, job_id, scratch)
     except CancelledError:
-        shutil.rmtree(folder, ignore_errors=True)
+        _quietly(storage.delete_prefix, prefix)
         if store.status(job_id) is JobStatus.dismissed:
             store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
     except LidarOutliersError as exc:
-        return _fail(store, job_id, folder, str(exc))
+        return _fail(store, storage, job_id, str(exc))
     except MemoryError:
-        return _fail(store, job_id, folder, "the job ran out of memory")
+        return _fail(store, storage, job_id, "the job ran out of memory")
     except time_limit_errors:
-        return _fail(store, job_id, folder,
+        return _fail(store, storage, job_id,
                      f"the job exceeded the time limit of {settings.task_time_limit} s")
     except Exception as exc:
         log.exception("job %s failed", job_id)
-        return _fail(store, job_id, folder, f"internal error: {type(exc).__name__}: {exc}")
-    done = store.transition(job_id, JobStatus.successful, "done",
-                            stored_bytes=layout.folder_bytes(folder))
+        return _fail(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}")
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    done = store.transition(job_id, JobStatus.successful, "done", stored_bytes=stored)
     if done is None:  # dismissed while the result was being written
-        shutil.rmtree(folder, ignore_errors=True)
+        _quietly(storage.delete_prefix, prefix)
         return JobStatus.dismissed
     return JobStatus.successful
 
 
-def _run(settings: Settings, store: Store, job_id: str) -> None:
-    """The pipeline over the job's input; the statistics name the user's files."""
+def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
+         scratch: Path) -> int:
+    """The pipeline over a local copy of the job's input; the statistics name the user's
+    files. The result and the statistics are put into the storage when both are complete.
+    Returns the bytes the job now keeps."""
     from lidar_outliers.process import process_file  # heavy imports (numba) only when run
 
     job = store.get_job(job_id)
     assert job is not None
     params = PipelineParams.model_validate(job.inputs)
-    trajectory = layout.trajectory_path(settings, job_id)
+    suffix = ".laz" if job.laz else ".las"
+    source, result = scratch / f"input{suffix}", scratch / f"result{suffix}"
+    stored = storage.get_file(layout.input_key(job_id, job.laz), source)
+    trajectory = None
+    if "trajectory" in job.facts:
+        trajectory = scratch / "trajectory.txt"
+        stored += storage.get_file(layout.trajectory_key(job_id), trajectory)
     stats = process_file(
-        layout.input_path(settings, job_id, job.laz),
-        layout.result_path(settings, job_id, job.laz),
+        source,
+        result,
         params,
         laz=job.laz,
         progress=Progress(store, job_id),
-        trajectory=trajectory if trajectory.exists() else None,
+        trajectory=trajectory,
     )
     if isinstance(stats.get("input"), dict):  # the user's file name, not input.las
         stats["input"]["name"] = job.facts.get("name", stats["input"].get("name"))
     if isinstance(stats.get("trajectory"), dict) and "trajectory" in job.facts:
         stats["trajectory"]["name"] = job.facts["trajectory"].get("name")
-    write_json_atomic(layout.statistics_path(settings, job_id), stats)
+    statistics = scratch / "statistics.json"
+    write_json_atomic(statistics, stats)
+    stored += storage.put_file(layout.result_key(job_id, job.laz), result, move=True)
+    stored += storage.put_file(layout.statistics_key(job_id), statistics, move=True)
+    return stored
 
 
-def _fail(store: Store, job_id: str, folder: Path, message: str) -> JobStatus:
+def _fail(store: Store, storage: Storage, job_id: str, message: str) -> JobStatus:
+    prefix = layout.job_prefix(job_id)
     if store.status(job_id) is JobStatus.dismissed:
-        # the error came from the dismissal itself (e.g. the API removed the folder)
-        shutil.rmtree(folder, ignore_errors=True)
+        # the error came from the dismissal itself (e.g. the API removed the objects)
+        _quietly(storage.delete_prefix, prefix)
         store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
     for name in layout.RESULT_NAMES:
-        (folder / name).unlink(missing_ok=True)
-    store.transition(job_id, JobStatus.failed, message,
-                     stored_bytes=layout.folder_bytes(folder) if folder.exists() else 0)
+        _quietly(storage.delete, prefix + name)
+    # the storage may be what failed: the job is recorded as failed all the same
+    stored = _quietly(storage.prefix_bytes, prefix)
+    store.transition(job_id, JobStatus.failed, message, stored_bytes=stored)
     return JobStatus.failed
+
+
+def _quietly(action: Callable[[str], T], key: str) -> T | None:
+    """Clean-up that must not hide the outcome being recorded: storage errors are logged."""
+    try:
+        return action(key)
+    except StorageError:
+        log.exception("storage clean-up of %s failed", key)
+        return None

@@ -32,7 +32,21 @@ class Settings(BaseSettings):
     )
     data_dir: Path = Field(
         PROJECT_ROOT / "data",
-        description="Uploads, results, the job and key database (SQLite), the local Redis AOF.",
+        description="Uploads and results (unless STORAGE_URL is set), the SQLite database "
+        "(unless DATABASE_URL is set), scratch space of this host, the local Redis AOF.",
+    )
+    database_url: str = Field(
+        "",
+        description="SQLAlchemy URL of the job and key database, e.g. "
+        "postgresql://user:password@host/db; empty: SQLite file DATA_DIR/service.sqlite3.",
+    )
+    storage_url: str = Field(
+        "",
+        description="s3://bucket/prefix keeps uploads, inputs and results in S3-compatible "
+        "object storage (credentials from the AWS environment variables); empty: DATA_DIR.",
+    )
+    s3_endpoint_url: str = Field(
+        "", description="Endpoint of an S3-compatible store (MinIO ...); empty: AWS S3."
     )
     max_upload_bytes: int = Field(2 * GIB, gt=0, description="Largest accepted upload (413 above).")
     max_active_jobs_per_user: int = Field(
@@ -71,6 +85,14 @@ class Settings(BaseSettings):
                 names = ", ".join(sorted(m.upper() for m in missing))
                 raise ValueError(f"ENVIRONMENT=prod needs {names} set explicitly")
         self.data_dir = self.data_dir.expanduser().resolve()
+        if not self.database_url:
+            self.database_url = f"sqlite:///{self.data_dir / 'service.sqlite3'}"
+        if self.storage_url:
+            scheme, _, rest = self.storage_url.partition("://")
+            if scheme != "s3" or not rest.split("/", 1)[0]:
+                raise ValueError(
+                    f"STORAGE_URL must look like s3://bucket/prefix, got {self.storage_url!r}"
+                )
         if self.visibility_timeout == 0:
             self.visibility_timeout = self.task_time_limit + 600
         if self.visibility_timeout <= self.task_time_limit:
@@ -88,15 +110,19 @@ class Settings(BaseSettings):
 
     @property
     def db_path(self) -> Path:
+        """The embedded SQLite database (used when DATABASE_URL is not set)."""
         return self.data_dir / "service.sqlite3"
 
     @property
-    def jobs_dir(self) -> Path:
-        return self.data_dir / "jobs"
+    def incoming_dir(self) -> Path:
+        """Request bodies being received by the API on this host, before they are checked."""
+        return self.data_dir / "uploads" / "incoming"
 
     @property
-    def uploads_dir(self) -> Path:
-        return self.data_dir / "uploads"
+    def scratch_dir(self) -> Path:
+        """Local working copies of this host: a job's input and result while a worker runs it,
+        a result while the API derives another format or a preview from it."""
+        return self.data_dir / "scratch"
 
 
 @lru_cache

@@ -1,10 +1,18 @@
-"""Job records and API keys in one SQLite file under ``DATA_DIR`` (WAL mode).
+"""Job records, uploads and API keys in SQLite (the default, a file under ``DATA_DIR``) or
+PostgreSQL (``DATABASE_URL``), through SQLAlchemy Core.
 
-The API and the worker processes open the same file; every write is one short transaction, so
-they do not block each other for long. Keys are stored only as sha256 hashes.
+The API and the worker processes, on one host or several, share the database; every operation
+is one short transaction. Keys are stored only as sha256 hashes. The schema is the one of
+:mod:`lidar_outliers.jobs.schema`, brought up to date when a store is opened
+(:func:`lidar_outliers.jobs.database.upgrade`).
 
-:func:`Store.transition` is the one place that moves a job between states
+:meth:`Store.transition` is the one place that moves a job between states
 (accepted -> running -> successful / failed / dismissed) and records failures.
+
+Limits hold under concurrency: :meth:`Store.create_job` and :meth:`Store.add_upload` check the
+user's active jobs and stored bytes and insert the record in one transaction that first locks
+the user (``SELECT ... FOR UPDATE`` on PostgreSQL; SQLite's write lock, taken at ``BEGIN
+IMMEDIATE``), so two requests of one user cannot both pass a check that only one may pass.
 """
 
 from __future__ import annotations
@@ -12,21 +20,48 @@ from __future__ import annotations
 import hashlib
 import json
 import secrets
-import sqlite3
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
+import sqlalchemy as sa
+
 from lidar_outliers.errors import LidarOutliersError
+from lidar_outliers.jobs import database
+from lidar_outliers.jobs.schema import jobs, uploads, users
 
 
 class StoreError(LidarOutliersError):
     """A user or job operation that cannot be done (unknown user, name taken, ...)."""
+
+
+class LimitExceeded(StoreError):
+    """A new job or upload would take the user over a limit; nothing was recorded."""
+
+
+class TooManyActiveJobs(LimitExceeded):
+    def __init__(self, active: int, limit: int) -> None:
+        super().__init__(f"{active} queued or running jobs, the limit is {limit}")
+        self.active = active
+        self.limit = limit
+
+
+class QuotaExceeded(LimitExceeded):
+    def __init__(self, stored: int, requested: int, limit: int) -> None:
+        super().__init__(f"{stored} bytes stored + {requested} new would exceed the quota of "
+                         f"{limit} bytes")
+        self.stored = stored
+        self.requested = requested
+        self.limit = limit
+
+    @property
+    def left(self) -> int:
+        return max(0, self.limit - self.stored)
 
 
 class JobStatus(StrEnum):
@@ -57,42 +92,6 @@ TRANSITIONS: dict[JobStatus, set[JobStatus]] = {
     JobStatus.dismissed: set(),
 }
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS users (
-    id INTEGER PRIMARY KEY,
-    name TEXT NOT NULL UNIQUE,
-    key_hash TEXT NOT NULL UNIQUE,
-    created TEXT NOT NULL,
-    revoked TEXT
-);
-CREATE TABLE IF NOT EXISTS jobs (
-    id TEXT PRIMARY KEY,
-    user_id INTEGER NOT NULL REFERENCES users(id),
-    process_id TEXT NOT NULL,
-    status TEXT NOT NULL,
-    progress INTEGER NOT NULL DEFAULT 0,
-    message TEXT NOT NULL DEFAULT '',
-    created TEXT NOT NULL,
-    started TEXT,
-    finished TEXT,
-    inputs TEXT NOT NULL,
-    facts TEXT NOT NULL,
-    laz INTEGER NOT NULL,
-    attempts INTEGER NOT NULL DEFAULT 0,
-    worker_pid INTEGER,
-    stored_bytes INTEGER NOT NULL DEFAULT 0
-);
-CREATE INDEX IF NOT EXISTS jobs_by_user ON jobs(user_id, created);
-CREATE TABLE IF NOT EXISTS uploads (
-    id TEXT PRIMARY KEY,
-    user_id INTEGER NOT NULL REFERENCES users(id),
-    name TEXT NOT NULL,
-    path TEXT NOT NULL,
-    bytes INTEGER NOT NULL,
-    created TEXT NOT NULL
-);
-"""
-
 
 def now() -> str:
     """UTC time as ISO 8601 with a Z, as OGC API - Processes writes it."""
@@ -120,9 +119,19 @@ class Upload:
     id: str
     user_id: int
     name: str
-    path: str
+    #: Where the file is in the object storage (:mod:`lidar_outliers.jobs.storage`).
+    key: str
     bytes: int
     created: str
+    #: Header facts of a cloud, or the summary of a trajectory (None for older uploads).
+    facts: dict[str, Any] | None = None
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any]) -> Upload:
+        facts = row["facts"]
+        return cls(id=row["id"], user_id=row["user_id"], name=row["name"], key=row["key"],
+                   bytes=int(row["bytes"]), created=row["created"],
+                   facts=json.loads(facts) if facts else None)
 
 
 @dataclass
@@ -142,10 +151,14 @@ class Job:
     attempts: int = 0
     worker_pid: int | None = None
     stored_bytes: int = 0
-    extra: dict[str, Any] = field(default_factory=dict)
+    #: The user's n-th job (lists are in this order).
+    seq: int = 0
+    #: Set by :meth:`Store.create_job` only: the user's active jobs before this one (its queue
+    #: priority); not stored.
+    active_before: int = 0
 
     @classmethod
-    def from_row(cls, row: sqlite3.Row) -> Job:
+    def from_row(cls, row: Mapping[str, Any]) -> Job:
         return cls(
             id=row["id"],
             user_id=row["user_id"],
@@ -161,40 +174,86 @@ class Job:
             laz=bool(row["laz"]),
             attempts=row["attempts"],
             worker_pid=row["worker_pid"],
-            stored_bytes=row["stored_bytes"],
+            stored_bytes=int(row["stored_bytes"]),
+            seq=row["seq"],
         )
 
 
+def _user(row: Mapping[str, Any]) -> User:
+    return User(id=row["id"], name=row["name"], created=row["created"], revoked=row["revoked"])
+
+
 class Store:
-    """Users, uploads and jobs in SQLite. Cheap to create; opens one connection per operation."""
+    """Users, uploads and jobs in one database. Opening one migrates the schema (unless
+    ``migrate`` is False: the caller knows it is current); share one per process."""
 
-    def __init__(self, path: Path) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self._connect() as db:
-            db.execute("PRAGMA journal_mode=WAL")
-            db.executescript(SCHEMA)
+    def __init__(self, url: str | Path, *, migrate: bool = True) -> None:
+        self.url = database.normalise_url(url)
+        self.engine = database.create_engine(url)
+        if migrate:
+            database.upgrade(self.engine)
+
+    @property
+    def path(self) -> Path | None:
+        """The SQLite file, or None for another database."""
+        return database.sqlite_file(self.url)
+
+    def describe(self) -> str:
+        """Where the records are, for messages (no password)."""
+        return self.url.render_as_string(hide_password=True)
+
+    def close(self) -> None:
+        """Close the pooled connections (before a fork, or when done)."""
+        self.engine.dispose()
 
     @contextmanager
-    def _connect(self) -> Iterator[sqlite3.Connection]:
-        db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
-        db.row_factory = sqlite3.Row
-        db.execute("PRAGMA busy_timeout=30000")
-        try:
+    def _read(self) -> Iterator[sa.Connection]:
+        with self.engine.connect() as db:
             yield db
-        finally:
-            db.close()
 
     @contextmanager
-    def _transaction(self) -> Iterator[sqlite3.Connection]:
-        with self._connect() as db:
-            db.execute("BEGIN IMMEDIATE")
-            try:
+    def _transaction(self) -> Iterator[sa.Connection]:
+        """A writing transaction: committed at the end of the block, rolled back on error."""
+        with self.engine.connect() as db:
+            db.execution_options(**{database.WRITE: True})
+            with db.begin():
                 yield db
-            except BaseException:
-                db.execute("ROLLBACK")
-                raise
-            db.execute("COMMIT")
+
+    @staticmethod
+    def _lock_user(db: sa.Connection, user_id: int) -> None:
+        """Serialise the user's reservations until the transaction ends."""
+        row = db.execute(
+            sa.select(users.c.id).where(users.c.id == user_id).with_for_update()
+        ).first()
+        if row is None:
+            raise StoreError(f"no user with id {user_id}")
+
+    @staticmethod
+    def _stored_bytes(db: sa.Connection, user_id: int) -> int:
+        in_jobs = db.execute(
+            sa.select(sa.func.coalesce(sa.func.sum(jobs.c.stored_bytes), 0))
+            .where(jobs.c.user_id == user_id)
+        ).scalar_one()
+        in_uploads = db.execute(
+            sa.select(sa.func.coalesce(sa.func.sum(uploads.c.bytes), 0))
+            .where(uploads.c.user_id == user_id)
+        ).scalar_one()
+        return int(in_jobs) + int(in_uploads)
+
+    @staticmethod
+    def _count_active(db: sa.Connection, user_id: int) -> int:
+        return int(db.execute(
+            sa.select(sa.func.count()).select_from(jobs)
+            .where(jobs.c.user_id == user_id, jobs.c.status.in_([s.value for s in ACTIVE]))
+        ).scalar_one())
+
+    def _check_quota(self, db: sa.Connection, user_id: int, size: int,
+                     limit: int | None) -> None:
+        if limit is None:
+            return
+        stored = self._stored_bytes(db, user_id)
+        if stored + size > limit:
+            raise QuotaExceeded(stored, size, limit)
 
     # ---- users -------------------------------------------------------------------------------
 
@@ -205,75 +264,87 @@ class Store:
             raise StoreError(f"user name must be 1-100 characters without spaces, got {name!r}")
         key = "lo_" + secrets.token_urlsafe(32)
         created = now()
-        with self._transaction() as db:
-            if db.execute("SELECT 1 FROM users WHERE name = ?", (name,)).fetchone():
-                raise StoreError(f"user {name!r} exists; revoke it first or choose another name")
-            cur = db.execute(
-                "INSERT INTO users (name, key_hash, created) VALUES (?, ?, ?)",
-                (name, hash_key(key), created),
-            )
-            return User(id=cur.lastrowid or 0, name=name, created=created), key
+        taken = StoreError(f"user {name!r} exists; revoke it first or choose another name")
+        try:
+            with self._transaction() as db:
+                if db.execute(sa.select(users.c.id).where(users.c.name == name)).first():
+                    raise taken
+                user_id = db.execute(
+                    sa.insert(users).values(name=name, key_hash=hash_key(key), created=created)
+                    .returning(users.c.id)
+                ).scalar_one()
+        except sa.exc.IntegrityError:  # added by another process since the check
+            raise taken from None
+        return User(id=user_id, name=name, created=created), key
 
     def list_users(self) -> list[User]:
-        with self._connect() as db:
-            rows = db.execute("SELECT id, name, created, revoked FROM users ORDER BY id").fetchall()
-        return [User(**dict(r)) for r in rows]
+        with self._read() as db:
+            rows = db.execute(sa.select(users).order_by(users.c.id)).mappings().all()
+        return [_user(r) for r in rows]
 
     def revoke_user(self, name: str) -> None:
         """Invalidate a user's key. The name is freed (a new key can be issued under it) by
         renaming the revoked row; its jobs stay until retention deletes them."""
         with self._transaction() as db:
-            row = db.execute(
-                "SELECT id FROM users WHERE name = ? AND revoked IS NULL", (name,)
-            ).fetchone()
-            if row is None:
+            user_id = db.execute(
+                sa.select(users.c.id).where(users.c.name == name, users.c.revoked.is_(None))
+                .with_for_update()
+            ).scalar()
+            if user_id is None:
                 raise StoreError(f"no active user named {name!r}")
-            stamp = now()
             db.execute(
-                "UPDATE users SET revoked = ?, name = ?, key_hash = ? WHERE id = ?",
-                (stamp, f"{name}#revoked-{row['id']}", "revoked-" + secrets.token_hex(16),
-                 row["id"]),
+                sa.update(users).where(users.c.id == user_id).values(
+                    revoked=now(), name=f"{name}#revoked-{user_id}",
+                    key_hash="revoked-" + secrets.token_hex(16),
+                )
             )
 
     def user_for_key(self, key: str) -> User | None:
-        with self._connect() as db:
+        with self._read() as db:
             row = db.execute(
-                "SELECT id, name, created, revoked FROM users WHERE key_hash = ? "
-                "AND revoked IS NULL",
-                (hash_key(key),),
-            ).fetchone()
-        return User(**dict(row)) if row else None
+                sa.select(users).where(users.c.key_hash == hash_key(key),
+                                       users.c.revoked.is_(None))
+            ).mappings().first()
+        return _user(row) if row else None
 
     # ---- uploads -----------------------------------------------------------------------------
 
-    def add_upload(self, user_id: int, name: str, path: Path, size: int) -> Upload:
-        upload = Upload(
-            id=uuid.uuid4().hex, user_id=user_id, name=name, path=str(path), bytes=size,
-            created=now(),
-        )
+    def add_upload(
+        self, user_id: int, name: str, key: str, size: int,
+        facts: dict[str, Any] | None = None, *, max_stored_bytes: int | None = None,
+        upload_id: str | None = None,
+    ) -> Upload:
+        """Record an upload; with ``max_stored_bytes``, refuse it (:class:`QuotaExceeded`) when
+        the user's stored bytes plus ``size`` would exceed that, checked in the same
+        transaction."""
+        upload = Upload(id=upload_id or uuid.uuid4().hex, user_id=user_id, name=name, key=key,
+                        bytes=size, created=now(), facts=facts)
         with self._transaction() as db:
-            db.execute(
-                "INSERT INTO uploads (id, user_id, name, path, bytes, created) "
-                "VALUES (?, ?, ?, ?, ?, ?)",
-                (upload.id, user_id, name, str(path), size, upload.created),
-            )
+            self._lock_user(db, user_id)
+            self._check_quota(db, user_id, size, max_stored_bytes)
+            db.execute(sa.insert(uploads).values(
+                id=upload.id, user_id=user_id, name=name, key=key, bytes=size,
+                created=upload.created, facts=json.dumps(facts) if facts is not None else None,
+            ))
         return upload
 
     def get_upload(self, upload_id: str, user_id: int) -> Upload | None:
-        with self._connect() as db:
+        with self._read() as db:
             row = db.execute(
-                "SELECT * FROM uploads WHERE id = ? AND user_id = ?", (upload_id, user_id)
-            ).fetchone()
-        return Upload(**dict(row)) if row else None
+                sa.select(uploads).where(uploads.c.id == upload_id, uploads.c.user_id == user_id)
+            ).mappings().first()
+        return Upload.from_row(row) if row else None
 
     def delete_upload(self, upload_id: str) -> None:
         with self._transaction() as db:
-            db.execute("DELETE FROM uploads WHERE id = ?", (upload_id,))
+            db.execute(sa.delete(uploads).where(uploads.c.id == upload_id))
 
     def uploads_created_before(self, stamp: str) -> list[Upload]:
-        with self._connect() as db:
-            rows = db.execute("SELECT * FROM uploads WHERE created < ?", (stamp,)).fetchall()
-        return [Upload(**dict(r)) for r in rows]
+        with self._read() as db:
+            rows = db.execute(
+                sa.select(uploads).where(uploads.c.created < stamp)
+            ).mappings().all()
+        return [Upload.from_row(r) for r in rows]
 
     # ---- jobs --------------------------------------------------------------------------------
 
@@ -286,7 +357,18 @@ class Store:
         laz: bool,
         stored_bytes: int,
         job_id: str | None = None,
+        *,
+        max_active: int | None = None,
+        max_stored_bytes: int | None = None,
     ) -> Job:
+        """Record a new accepted job that holds ``stored_bytes``.
+
+        With ``max_active``, refuse it (:class:`TooManyActiveJobs`) when the user already has
+        that many queued or running jobs; with ``max_stored_bytes``, refuse it
+        (:class:`QuotaExceeded`) when its bytes do not fit the user's quota. The checks and the
+        insert are one transaction under the user's lock: concurrent submissions never take a
+        user over either limit.
+        """
         job = Job(
             id=job_id or uuid.uuid4().hex,
             user_id=user_id,
@@ -303,60 +385,59 @@ class Store:
             stored_bytes=stored_bytes,
         )
         with self._transaction() as db:
-            db.execute(
-                "INSERT INTO jobs (id, user_id, process_id, status, progress, message, created, "
-                "inputs, facts, laz, stored_bytes) VALUES (?, ?, ?, ?, 0, ?, ?, ?, ?, ?, ?)",
-                (job.id, user_id, process_id, job.status.value, job.message, job.created,
-                 json.dumps(inputs), json.dumps(facts), int(laz), stored_bytes),
-            )
+            self._lock_user(db, user_id)
+            active = self._count_active(db, user_id)
+            if max_active is not None and active >= max_active:
+                raise TooManyActiveJobs(active, max_active)
+            self._check_quota(db, user_id, stored_bytes, max_stored_bytes)
+            job.seq = int(db.execute(
+                sa.select(sa.func.coalesce(sa.func.max(jobs.c.seq), 0) + 1)
+                .where(jobs.c.user_id == user_id)
+            ).scalar_one())
+            db.execute(sa.insert(jobs).values(
+                id=job.id, user_id=user_id, process_id=process_id, status=job.status.value,
+                progress=0, message=job.message, created=job.created, inputs=json.dumps(inputs),
+                facts=json.dumps(facts), laz=int(laz), stored_bytes=stored_bytes, seq=job.seq,
+            ))
+        job.active_before = active
         return job
 
     def get_job(self, job_id: str) -> Job | None:
-        with self._connect() as db:
-            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        with self._read() as db:
+            row = db.execute(sa.select(jobs).where(jobs.c.id == job_id)).mappings().first()
         return Job.from_row(row) if row else None
 
     def list_jobs(self, user_id: int, limit: int, offset: int) -> tuple[list[Job], int]:
         """The user's jobs, newest first, and how many there are in all."""
-        with self._connect() as db:
+        with self._read() as db:
             rows = db.execute(
-                "SELECT * FROM jobs WHERE user_id = ? ORDER BY created DESC, rowid DESC "
-                "LIMIT ? OFFSET ?",
-                (user_id, limit, offset),
-            ).fetchall()
+                sa.select(jobs).where(jobs.c.user_id == user_id)
+                .order_by(jobs.c.seq.desc()).limit(limit).offset(offset)
+            ).mappings().all()
             total = db.execute(
-                "SELECT COUNT(*) FROM jobs WHERE user_id = ?", (user_id,)
-            ).fetchone()[0]
-        return [Job.from_row(r) for r in rows], total
+                sa.select(sa.func.count()).select_from(jobs).where(jobs.c.user_id == user_id)
+            ).scalar_one()
+        return [Job.from_row(r) for r in rows], int(total)
 
     def count_active(self, user_id: int) -> int:
-        with self._connect() as db:
-            return db.execute(
-                "SELECT COUNT(*) FROM jobs WHERE user_id = ? AND status IN (?, ?)",
-                (user_id, *[s.value for s in ACTIVE]),
-            ).fetchone()[0]
+        with self._read() as db:
+            return self._count_active(db, user_id)
 
     def stored_bytes(self, user_id: int) -> int:
-        """Bytes the user keeps on the server: job folders and uploads."""
-        with self._connect() as db:
-            jobs = db.execute(
-                "SELECT COALESCE(SUM(stored_bytes), 0) FROM jobs WHERE user_id = ?", (user_id,)
-            ).fetchone()[0]
-            uploads = db.execute(
-                "SELECT COALESCE(SUM(bytes), 0) FROM uploads WHERE user_id = ?", (user_id,)
-            ).fetchone()[0]
-        return int(jobs) + int(uploads)
+        """Bytes the user keeps on the server: jobs' files and uploads."""
+        with self._read() as db:
+            return self._stored_bytes(db, user_id)
 
     def jobs_finished_before(self, stamp: str) -> list[Job]:
-        with self._connect() as db:
+        with self._read() as db:
             rows = db.execute(
-                "SELECT * FROM jobs WHERE finished IS NOT NULL AND finished < ?", (stamp,)
-            ).fetchall()
+                sa.select(jobs).where(jobs.c.finished.is_not(None), jobs.c.finished < stamp)
+            ).mappings().all()
         return [Job.from_row(r) for r in rows]
 
     def delete_job(self, job_id: str) -> None:
         with self._transaction() as db:
-            db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+            db.execute(sa.delete(jobs).where(jobs.c.id == job_id))
 
     def transition(
         self,
@@ -370,13 +451,16 @@ class Store:
         """Move a job to ``status`` if the move is allowed; return the job as stored afterwards,
         or None when the move is refused (unknown job, or already final such as dismissed)."""
         with self._transaction() as db:
-            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            row = db.execute(
+                sa.select(jobs.c.status, jobs.c.attempts).where(jobs.c.id == job_id)
+                .with_for_update()
+            ).mappings().first()
             if row is None:
                 return None
             current = JobStatus(row["status"])
             if status not in TRANSITIONS[current]:
                 return None
-            sets = {"status": status.value}
+            sets: dict[str, Any] = {"status": status.value}
             if message is not None:
                 sets["message"] = message
             stamp = now()
@@ -392,31 +476,29 @@ class Store:
                 sets["progress"] = 100
             if stored_bytes is not None:
                 sets["stored_bytes"] = stored_bytes
-            assignments = ", ".join(f"{k} = ?" for k in sets)
-            db.execute(f"UPDATE jobs SET {assignments} WHERE id = ?", (*sets.values(), job_id))
-            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return Job.from_row(row)
+            db.execute(sa.update(jobs).where(jobs.c.id == job_id).values(**sets))
+            updated = db.execute(sa.select(jobs).where(jobs.c.id == job_id)).mappings().one()
+        return Job.from_row(updated)
 
     def set_progress(self, job_id: str, percent: int, message: str) -> JobStatus | None:
         """Record progress of a running job; return its status (the worker stops on dismissed)."""
         with self._transaction() as db:
-            row = db.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
-            if row is None:
-                return None
-            status = JobStatus(row["status"])
-            if status is JobStatus.running:
-                db.execute(
-                    "UPDATE jobs SET progress = ?, message = ? WHERE id = ?",
-                    (max(0, min(99, percent)), message, job_id),
-                )
-        return status
+            changed = db.execute(
+                sa.update(jobs)
+                .where(jobs.c.id == job_id, jobs.c.status == JobStatus.running.value)
+                .values(progress=max(0, min(99, percent)), message=message)
+            ).rowcount
+            if changed:
+                return JobStatus.running
+            status = db.execute(sa.select(jobs.c.status).where(jobs.c.id == job_id)).scalar()
+        return JobStatus(status) if status is not None else None
 
     def annotate(self, job_id: str, message: str) -> None:
         """Replace a job's message without changing its state (e.g. how a cancel ended)."""
         with self._transaction() as db:
-            db.execute("UPDATE jobs SET message = ? WHERE id = ?", (message, job_id))
+            db.execute(sa.update(jobs).where(jobs.c.id == job_id).values(message=message))
 
     def status(self, job_id: str) -> JobStatus | None:
-        with self._connect() as db:
-            row = db.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return JobStatus(row["status"]) if row else None
+        with self._read() as db:
+            status = db.execute(sa.select(jobs.c.status).where(jobs.c.id == job_id)).scalar()
+        return JobStatus(status) if status is not None else None

@@ -4,15 +4,20 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query
-from fastapi.responses import FileResponse
+from fastapi import APIRouter, Query, Request, Response
 
 from service.deps import ServiceDep, UserDep
+from service.downloads import object_response
 from service.jobs import status_document
 
 router = APIRouter(tags=["jobs"])
 
 MEDIA = {".las": "application/vnd.las", ".laz": "application/vnd.laszip"}
+#: Downloads answer HEAD too (size and validators without the body) and honour Range.
+DOWNLOAD = {"methods": ["GET", "HEAD"], "response_class": Response, "responses": {
+    206: {"description": "The byte range(s) asked with `Range: bytes=...`."},
+    416: {"description": "Malformed or unsatisfiable `Range` (problem details)."},
+}}
 
 
 @router.get("/jobs")
@@ -49,7 +54,7 @@ def dismiss_job(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, An
 
 @router.get("/jobs/{job_id}/results")
 def get_results(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, Any]:
-    job, _ = service.result_file(user, job_id, "cloud")
+    job, _, _ = service.result(user, job_id, "cloud")
     base = f"/jobs/{job_id}/results"
     cloud_type = MEDIA[".laz" if job.laz else ".las"]
     return {
@@ -60,29 +65,33 @@ def get_results(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, An
     }
 
 
-@router.get("/jobs/{job_id}/results/cloud", response_class=FileResponse)
+@router.api_route("/jobs/{job_id}/results/cloud", **DOWNLOAD)
 def get_cloud(
     job_id: str,
+    request: Request,
     service: ServiceDep,
     user: UserDep,
     keep: Literal["all", "inliers", "outliers"] = "all",
     format: Literal["las", "laz"] | None = None,
-) -> FileResponse:
+) -> Response:
     """The flagged cloud; LAZ when the input was LAZ or with ``?format=laz``."""
     laz = None if format is None else format == "laz"
-    path = service.cloud_file(user, job_id, keep, laz)
-    suffix = f"-{keep}" if keep != "all" else ""
-    return FileResponse(path, media_type=MEDIA[path.suffix],
-                        filename=f"{job_id}{suffix}{path.suffix}")
+    key, info, laz = service.cloud(user, job_id, keep, laz)
+    suffix = ".laz" if laz else ".las"
+    keep_part = f"-{keep}" if keep != "all" else ""
+    return object_response(request, service.storage, key, info, MEDIA[suffix],
+                           filename=f"{job_id}{keep_part}{suffix}")
 
 
-@router.get("/jobs/{job_id}/results/statistics", response_class=FileResponse)
-def get_statistics(job_id: str, service: ServiceDep, user: UserDep) -> FileResponse:
-    _, path = service.result_file(user, job_id, "statistics")
-    return FileResponse(path, media_type="application/json")
+@router.api_route("/jobs/{job_id}/results/statistics", **DOWNLOAD)
+def get_statistics(job_id: str, request: Request, service: ServiceDep,
+                   user: UserDep) -> Response:
+    _, key, info = service.result(user, job_id, "statistics")
+    return object_response(request, service.storage, key, info, "application/json")
 
 
-@router.get("/jobs/{job_id}/results/preview", response_class=FileResponse)
-def get_preview(job_id: str, service: ServiceDep, user: UserDep) -> FileResponse:
+@router.api_route("/jobs/{job_id}/results/preview", **DOWNLOAD)
+def get_preview(job_id: str, request: Request, service: ServiceDep, user: UserDep) -> Response:
     """A PNG of the flagged cloud, rendered on first request."""
-    return FileResponse(service.preview_file(user, job_id), media_type="image/png")
+    key, info = service.preview(user, job_id)
+    return object_response(request, service.storage, key, info, "image/png")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Request
@@ -107,8 +106,7 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
             received.remove()
             raise
         job = await run_in_threadpool(service.submit, user, process_id, params, received.path,
-                                      received.filename, move=True,
-                                      trajectory=received.trajectory,
+                                      received.filename, trajectory=received.trajectory,
                                       trajectory_name=received.trajectory_name)
     elif content_type.startswith("application/json"):
         body = await request.body()
@@ -127,15 +125,11 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
                           '"/uploads/<id>"} (POST /uploads first) or send multipart/form-data',
                           errors=[{"parameter": "cloud", "message": "missing href"}])
         upload = await run_in_threadpool(service.find_upload, user, href)
-        trajectory = trajectory_name = None
+        trajectory = None
         if trajectory_ref is not None:
-            stored = await run_in_threadpool(service.trajectory_upload, user, trajectory_ref)
-            trajectory, trajectory_name = Path(stored.path), stored.name
-        job = await run_in_threadpool(service.submit, user, process_id, params,
-                                      Path(upload.path), upload.name, move=False,
-                                      trajectory=trajectory,
-                                      trajectory_name=trajectory_name or "trajectory.txt",
-                                      move_trajectory=False)
+            trajectory = await run_in_threadpool(service.trajectory_upload, user, trajectory_ref)
+        job = await run_in_threadpool(service.submit, user, process_id, params, upload,
+                                      trajectory=trajectory)
     else:
         raise Problem(415, "unsupported-media-type",
                       "send multipart/form-data (part `file` and optional part `inputs`) or "

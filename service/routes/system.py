@@ -7,8 +7,9 @@ from typing import Any
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
+from lidar_outliers.jobs.storage import StorageError
 from service import queue
-from service.deps import SettingsDep
+from service.deps import ServiceDep, SettingsDep
 from service.problems import PROBLEMS, Problem
 
 router = APIRouter(tags=["system"])
@@ -41,11 +42,24 @@ def conformance() -> dict[str, Any]:
 
 
 @router.get("/health")
-def health(settings: SettingsDep) -> JSONResponse:
-    """200 when the API, Redis and at least one worker answer; 503 naming what does not."""
+def health(settings: SettingsDep, service: ServiceDep) -> JSONResponse:
+    """200 when the API, the database, the file storage, Redis and at least one worker answer;
+    503 naming what does not."""
     import redis
 
     report: dict[str, Any] = {"api": "ok"}
+    try:
+        service.store.count_active(0)
+        report["database"] = "ok"
+    except Exception as exc:  # any failure of the database is the answer
+        raise Problem(503, "service-unavailable", f"the database {service.store.describe()} "
+                      f"is not reachable: {exc}", **report, database="unreachable") from None
+    try:
+        service.storage.check()
+        report["storage"] = "ok"
+    except StorageError as exc:
+        raise Problem(503, "service-unavailable", str(exc), **report,
+                      storage="unreachable") from None
     try:
         redis.Redis.from_url(settings.redis_url, socket_timeout=2.0,
                              socket_connect_timeout=2.0).ping()

@@ -1,0 +1,65 @@
+"""The job store's tables as SQLAlchemy Core metadata: the schema the migrations lead to.
+
+The same definitions serve SQLite and PostgreSQL. Times are ISO 8601 text in UTC with a ``Z``
+(fixed width, so they sort as text); ``inputs`` and ``facts`` are JSON text. Byte counts are
+64-bit integers (SQLite's INTEGER is 64-bit already). A change here needs a migration in
+``migrations/versions`` that leads to it; ``tests/lidar_outliers/jobs/test_migrations.py``
+compares the two.
+"""
+
+from __future__ import annotations
+
+import sqlalchemy as sa
+
+#: 64-bit integer on PostgreSQL; plain INTEGER (64-bit) on SQLite, as the tables always had.
+Bytes = sa.BigInteger().with_variant(sa.Integer(), "sqlite")
+
+metadata = sa.MetaData()
+
+users = sa.Table(
+    "users",
+    metadata,
+    sa.Column("id", sa.Integer, primary_key=True),
+    sa.Column("name", sa.Text, nullable=False, unique=True),
+    sa.Column("key_hash", sa.Text, nullable=False, unique=True),
+    sa.Column("created", sa.Text, nullable=False),
+    sa.Column("revoked", sa.Text),
+)
+
+jobs = sa.Table(
+    "jobs",
+    metadata,
+    sa.Column("id", sa.Text, primary_key=True),
+    sa.Column("user_id", sa.Integer, sa.ForeignKey("users.id"), nullable=False),
+    sa.Column("process_id", sa.Text, nullable=False),
+    sa.Column("status", sa.Text, nullable=False),
+    sa.Column("progress", sa.Integer, nullable=False, server_default=sa.text("0")),
+    sa.Column("message", sa.Text, nullable=False, server_default=""),
+    sa.Column("created", sa.Text, nullable=False),
+    sa.Column("started", sa.Text),
+    sa.Column("finished", sa.Text),
+    sa.Column("inputs", sa.Text, nullable=False),
+    sa.Column("facts", sa.Text, nullable=False),
+    sa.Column("laz", sa.Integer, nullable=False),
+    sa.Column("attempts", sa.Integer, nullable=False, server_default=sa.text("0")),
+    sa.Column("worker_pid", sa.Integer),
+    sa.Column("stored_bytes", Bytes, nullable=False, server_default=sa.text("0")),
+    # the user's n-th job: lists keep submission order whatever the hosts' clocks say
+    sa.Column("seq", sa.Integer, nullable=False, server_default=sa.text("0")),
+    sa.Index("jobs_by_user_seq", "user_id", "seq", unique=True),
+    sa.Index("jobs_by_user_status", "user_id", "status"),
+)
+
+uploads = sa.Table(
+    "uploads",
+    metadata,
+    sa.Column("id", sa.Text, primary_key=True),
+    sa.Column("user_id", sa.Integer, sa.ForeignKey("users.id"), nullable=False),
+    sa.Column("name", sa.Text, nullable=False),
+    # where the file is in the object storage (lidar_outliers.jobs.storage)
+    sa.Column("key", sa.Text, nullable=False),
+    sa.Column("bytes", Bytes, nullable=False),
+    sa.Column("created", sa.Text, nullable=False),
+    # header facts of a cloud or a trajectory's summary, so a job can use it without reading it
+    sa.Column("facts", sa.Text),
+)
