@@ -41,6 +41,9 @@ def _missing(exc: botocore.exceptions.ClientError) -> bool:
 
 
 class S3Storage(Storage):
+    #: Keys per listing page and per delete request (1000: the most S3 allows for either).
+    page_size = 1000
+
     def __init__(self, bucket: str, prefix: str = "", endpoint_url: str | None = None,
                  client: Any = None) -> None:
         self.bucket = bucket
@@ -147,7 +150,7 @@ class S3Storage(Storage):
     def _list(self, prefix: str) -> Iterator[dict[str, Any]]:
         full = self.object_key(prefix.rstrip("/")) + ("/" if prefix.endswith("/") else "")
         pages = self.client.get_paginator("list_objects_v2").paginate(
-            Bucket=self.bucket, Prefix=full)
+            Bucket=self.bucket, Prefix=full, PaginationConfig={"PageSize": self.page_size})
         try:
             for page in pages:
                 yield from page.get("Contents", [])
@@ -158,7 +161,7 @@ class S3Storage(Storage):
         batch: list[dict[str, str]] = []
         for item in self._list(prefix):
             batch.append({"Key": item["Key"]})
-            if len(batch) == 1000:  # the most one request may delete
+            if len(batch) == self.page_size:
                 self._delete_batch(batch)
                 batch = []
         if batch:
