@@ -66,7 +66,7 @@ def parse_range(header: str | None, size: int) -> list[ByteRange] | None:
         first_text, dash, last_text = item.partition("-")
         first_text, last_text = first_text.strip(), last_text.strip()
         if not dash or not (first_text or last_text) or not all(
-                t.isdigit() for t in (first_text, last_text) if t):
+                t.isascii() and t.isdigit() for t in (first_text, last_text) if t):
             raise RangeNotSatisfiable(f"malformed range {item!r}")
         if not first_text:  # the last N bytes
             suffix = int(last_text)
@@ -74,9 +74,9 @@ def parse_range(header: str | None, size: int) -> list[ByteRange] | None:
                 ranges.append(ByteRange(max(0, size - suffix), size - 1))
             continue
         first = int(first_text)
-        last = int(last_text) if last_text else size - 1
-        if last < first:
+        if last_text and int(last_text) < first:
             raise RangeNotSatisfiable(f"range {item!r} ends before it starts")
+        last = int(last_text) if last_text else size - 1
         if first < size:
             ranges.append(ByteRange(first, min(last, size - 1)))
     if not ranges:
