@@ -178,8 +178,11 @@ class JobService:
             raise storage_unavailable(exc) from None
 
     def _upload_facts(self, upload: Upload, kind: str) -> dict[str, Any]:
-        """The facts recorded with a stored upload (read from the file when it has none)."""
-        if upload.facts is not None:
+        """The facts recorded with a stored upload of this kind. The file is read instead when
+        none were recorded, or when it is of the other kind (which then fails as a received
+        file would: 415 for a trajectory as the cloud, 422 for a cloud as the trajectory)."""
+        stored_kind = "trajectory" if upload.key.endswith(".txt") else "cloud"
+        if upload.facts is not None and stored_kind == kind:
             return dict(upload.facts)
         folder = layout.scratch(self.settings, "facts")
         try:

@@ -18,6 +18,7 @@ import laspy
 import pytest
 import sqlalchemy as sa
 
+from lidar_outliers.jobs import database
 from tests.e2e.stack import RedisServer, Stack, running_stack, wait_job
 from tests.lasfiles import write_cloud
 
@@ -209,9 +210,26 @@ def test_concurrent_submissions_respect_the_limit(queue_only: Stack, tmp_path: P
     assert {code for _, code in outcomes} == {201, 429}
     accepted = Counter(name for name, code in outcomes if code == 201)
     assert accepted == dict.fromkeys(keys, 4), accepted
-    for name, key in keys.items():
+    for key in keys.values():
         with queue_only.client(key) as client:
             listing = client.get("/jobs").json()
         assert listing["numberMatched"] == 4  # refused submissions left no record
         assert {j["status"] for j in listing["jobs"]} == {"accepted"}
     assert list((queue_only.data_dir / "uploads" / "incoming").glob("*")) == []
+
+
+def test_workers_alone_migrate_a_new_database(postgres, redis_server: RedisServer,
+                                              tmp_path: Path) -> None:
+    """Two workers start on an empty PostgreSQL database before any API: the schema is made
+    once, under the lock, and both serve."""
+    with postgres.database() as url:
+        stack = Stack(tmp_path / "data", redis_server.new_url(), database_url=url)
+        try:
+            stack.start_worker()
+            stack.start_worker()
+            stack.wait_workers_ready()
+            engine = sa.create_engine(database.normalise_url(url), poolclass=sa.NullPool)
+            assert database.current(engine) == database.head()
+            engine.dispose()
+        finally:
+            stack.stop()

@@ -184,8 +184,8 @@ def _part(tmp_path: Path, settings: Settings) -> Path:
     return part
 
 
-def run_cli(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
-    env = dict(os.environ, DATA_DIR=str(tmp_path / "data"))
+def run_cli(tmp_path: Path, *args: str, **settings: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, DATA_DIR=str(tmp_path / "data"), **settings)
     return subprocess.run([str(Path(sys.executable).parent / "lidar-outliers"), *args],
                           env=env, cwd=ROOT, capture_output=True, text=True, timeout=60)
 
@@ -206,6 +206,25 @@ def test_users_command(tmp_path: Path) -> None:
     gone = run_cli(tmp_path, "users", "revoke", "alice")
     assert gone.returncode == 1 and gone.stderr.count("\n") == 1
     assert "revoked" in run_cli(tmp_path, "users", "list").stdout
+
+
+def test_users_command_migrates_a_new_postgres_database(postgres, tmp_path: Path) -> None:
+    from lidar_outliers.jobs import database
+
+    with postgres.database() as url:
+        added = run_cli(tmp_path, "users", "add", "alice", DATABASE_URL=url)
+        assert added.returncode == 0, added.stderr
+        assert url.rsplit("/", 1)[1] in added.stdout
+        store = Store(url)
+        try:
+            assert database.current(store.engine) == database.head()
+            assert store.user_for_key(added.stdout.strip().splitlines()[-1]).name == "alice"
+        finally:
+            store.close()
+    wrong = run_cli(tmp_path, "users", "list",
+                    DATABASE_URL="postgresql://nobody:secret@127.0.0.1:1/none")
+    assert wrong.returncode == 1 and wrong.stderr.count("\n") == 1
+    assert "cannot be used" in wrong.stderr and "secret" not in wrong.stderr
 
 
 def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
@@ -306,4 +325,10 @@ def test_jobs_from_a_stored_upload_and_trajectory(store: Store, storage: Storage
         db.execute(sa.update(uploads).where(uploads.c.id == cloud.id).values(facts=None))
     again = service.submit(alice, "pipeline", params, service.find_upload(alice, cloud.id))
     assert again.facts["points"] == job.facts["points"]
+    with pytest.raises(Problem) as swapped:  # each upload is of its own kind
+        service.submit(alice, "pipeline", params, traj)
+    assert swapped.value.status == 415 and "drive.txt" in swapped.value.detail
+    with pytest.raises(Problem) as swapped:
+        service.submit(alice, "pipeline", params, cloud, trajectory=cloud)
+    assert swapped.value.status == 422
     assert list(settings.scratch_dir.iterdir()) == []
