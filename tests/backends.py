@@ -10,6 +10,7 @@ variable is set and is skipped otherwise, with the reason either way.
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -18,7 +19,7 @@ import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import pytest
 import sqlalchemy as sa
@@ -129,13 +130,14 @@ class MotoServer:
                     unavailable(f"moto_server did not listen on {self.port} within 60 s")
                 time.sleep(0.1)
 
-    def client(self):  # noqa: ANN201 - a boto3 client
+    def client(self) -> Any:
+        """A boto3 S3 client of this server."""
         import boto3
 
-        return boto3.client("s3", endpoint_url=self.url, **{
-            "aws_access_key_id": S3_ENV["AWS_ACCESS_KEY_ID"],
-            "aws_secret_access_key": S3_ENV["AWS_SECRET_ACCESS_KEY"],
-            "region_name": S3_ENV["AWS_DEFAULT_REGION"]})
+        return boto3.client("s3", endpoint_url=self.url,
+                            aws_access_key_id=S3_ENV["AWS_ACCESS_KEY_ID"],
+                            aws_secret_access_key=S3_ENV["AWS_SECRET_ACCESS_KEY"],
+                            region_name=S3_ENV["AWS_DEFAULT_REGION"])
 
     def new_bucket(self) -> str:
         name = f"lidar-{uuid.uuid4().hex[:12]}"
@@ -143,8 +145,6 @@ class MotoServer:
         return name
 
     def stop(self) -> None:
-        import signal
-
         try:
             os.killpg(self.proc.pid, signal.SIGTERM)
             self.proc.wait(timeout=20)

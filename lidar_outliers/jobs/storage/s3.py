@@ -44,8 +44,7 @@ class S3Storage(Storage):
     #: Keys per listing page and per delete request (1000: the most S3 allows for either).
     page_size = 1000
 
-    def __init__(self, bucket: str, prefix: str = "", endpoint_url: str | None = None,
-                 client: Any = None) -> None:
+    def __init__(self, bucket: str, prefix: str = "", endpoint_url: str | None = None) -> None:
         self.bucket = bucket
         self.prefix = prefix.strip("/")
         self.endpoint_url = endpoint_url
@@ -54,8 +53,9 @@ class S3Storage(Storage):
             s3={"addressing_style": "path"} if endpoint_url else {},
             connect_timeout=10, read_timeout=60,
         )
-        self.client = client or boto3.session.Session().client(
-            "s3", endpoint_url=endpoint_url, config=config)
+        # a session of its own: boto3's default session is not safe to share between threads
+        self.client = boto3.session.Session().client("s3", endpoint_url=endpoint_url,
+                                                     config=config)
 
     @classmethod
     def from_url(cls, url: str, endpoint_url: str | None = None) -> S3Storage:
