@@ -5,8 +5,9 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response
 
+from lidar_outliers import view
 from service.deps import ServiceDep, UserDep
 from service.jobs import status_document
 
@@ -57,6 +58,8 @@ def get_results(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, An
                   "title": "flagged cloud (?keep=inliers|outliers, ?format=las|laz)"},
         "statistics": {"href": f"{base}/statistics", "type": "application/json"},
         "preview": {"href": f"{base}/preview", "type": "image/png"},
+        "points": {"href": f"{base}/points", "type": view.MEDIA_TYPE,
+                   "title": "decimated points for a viewer (?max_points=N)"},
     }
 
 
@@ -86,3 +89,20 @@ def get_statistics(job_id: str, service: ServiceDep, user: UserDep) -> FileRespo
 def get_preview(job_id: str, service: ServiceDep, user: UserDep) -> FileResponse:
     """A PNG of the flagged cloud, rendered on first request."""
     return FileResponse(service.preview_file(user, job_id), media_type="image/png")
+
+
+@router.get("/jobs/{job_id}/results/points", response_class=Response,
+            responses={200: {"content": {view.MEDIA_TYPE: {}}}})
+def get_points(
+    job_id: str,
+    service: ServiceDep,
+    user: UserDep,
+    max_points: Annotated[int, Query(ge=1, le=5_000_000)] = view.DEFAULT_MAX_POINTS,
+) -> Response:
+    """At most ``max_points`` points of the flagged cloud for a viewer, spread evenly in space
+    with every flagged point kept: float32 xyz about a centre and the uint16 outlier_flags after
+    a JSON header (layout in ``lidar_outliers/view.py``)."""
+    _, path = service.result_file(user, job_id, "cloud")
+    if max_points == view.DEFAULT_MAX_POINTS:  # what the page asks for: made once, kept
+        return FileResponse(view.view_points_file(path, max_points), media_type=view.MEDIA_TYPE)
+    return Response(view.view_points(path, max_points), media_type=view.MEDIA_TYPE)
