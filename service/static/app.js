@@ -215,6 +215,16 @@ function openJob(id) {
   for (const row of $("job-table").tBodies[0].rows) {
     row.classList.toggle("open", row.dataset.job === id);
   }
+  $("dismiss").onclick = async () => {
+    clearProblem();
+    try {
+      await request(`/jobs/${encodeURIComponent(id)}`, { method: "DELETE" });
+      location.hash = "#/jobs";
+      refreshJobs();
+    } catch (error) {
+      showProblem(error);
+    }
+  };
   pollJob(id);
 }
 
@@ -245,6 +255,8 @@ function renderStatus(job) {
   $("job-status").replaceWith(Object.assign(statusBadge(job.status), { id: "job-status" }));
   $("job-progress").value = job.progress ?? 0;
   $("job-message").textContent = `${job.progress ?? 0} % ${job.message ? `· ${job.message}` : ""}`;
+  $("dismiss").textContent = ACTIVE.has(job.status) ? "Cancel job" : "Delete job";
+  $("dismiss").hidden = job.status === "dismissed";
 }
 
 async function showResults(job) {
@@ -266,7 +278,7 @@ async function showResults(job) {
   const { parsePoints } = await import("/app/static/viewer.js");
   const data = points instanceof ArrayBuffer ? parsePoints(points) : null;
   renderStatistics(job, statistics, data?.header.bits || {});
-  if (data) await showView(data);
+  if (data) await showView(id, data);
   else showProblem(points);
 }
 
@@ -297,15 +309,6 @@ function setDownloads(id, base, job) {
       }
     };
   }
-  $("dismiss").onclick = async () => {
-    try {
-      await request(`/jobs/${encodeURIComponent(id)}`, { method: "DELETE" });
-      location.hash = "#/jobs";
-      refreshJobs();
-    } catch (error) {
-      showProblem(error);
-    }
-  };
   $("downloads").hidden = false;
 }
 
@@ -358,9 +361,10 @@ function renderStatistics(job, stats, bits) {
 
 // ---- the 3-D view --------------------------------------------------------------------------
 
-async function showView(data) {
-  $("view-box").hidden = false;
+async function showView(id, data) {
   const { CloudView, detectorColours } = await import("/app/static/viewer.js");
+  if (id !== openJobId) return; // another job was opened meanwhile
+  $("view-box").hidden = false;
   try {
     view = new CloudView($("viewer"));
   } catch (error) {

@@ -273,3 +273,13 @@ def test_another_users_job_is_not_reachable(stack: Stack, keys: dict[str, str], 
     assert page.locator(f"#job-table tr[data-job='{job_id}']").count() == 0
     with stack.client(keys["bob"]) as http:
         assert http.get(f"/jobs/{job_id}/results/points").status_code == 404
+
+    # its owner deletes it from the page; it stays listed as dismissed
+    page = browsing().page()
+    sign_in(page, stack, keys["alice"])
+    page.goto(f"{stack.url}/app#/jobs/{job_id}")
+    page.wait_for_selector("#job[data-status=successful]")
+    page.click("#dismiss")
+    page.wait_for_url(re.compile(r"#/jobs$"))
+    page.wait_for_selector(f"#job-table tr[data-job='{job_id}'] .status.dismissed")
+    assert page.is_hidden("#job")
