@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import os
 import re
 from pathlib import Path
 
@@ -51,6 +52,15 @@ def job_page() -> HTMLResponse:
     return HTMLResponse(PAGE, headers=HEADERS)
 
 
+class _Assets(StaticFiles):
+    """The page's scripts, styles and icon; the page itself only at /app, with its policy."""
+
+    def lookup_path(self, path: str) -> tuple[str, os.stat_result | None]:
+        if path.endswith(".html"):
+            return "", None
+        return super().lookup_path(path)
+
+
 def static_files() -> StaticFiles:
     """The page's files, mounted at /app/static."""
-    return StaticFiles(directory=STATIC)
+    return _Assets(directory=STATIC)

@@ -166,6 +166,7 @@ def test_the_page_and_every_file_it_names_are_served(stack: Stack) -> None:
             assert answer.headers["content-type"].split(";")[0] in (
                 "text/javascript", "application/javascript", "text/css", "image/svg+xml"), name
         assert http.get("/app/static/..%2Froutes%2Fpages.py").status_code == 404
+        assert http.get("/app/static/app.html").status_code == 404  # only /app, with its policy
 
 
 def test_wrong_key_shows_the_401_problem(stack: Stack, browsing) -> None:
