@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -108,6 +110,21 @@ def test_upload_then_submit_by_href_with_a_trajectory(stack: Stack, key: str,
         for job in (by_href, by_file):
             assert job["input_file"]["trajectory"]["name"] == trajectory.name
             assert api.dismiss(job["jobID"])["status"] == "dismissed"
+
+
+def test_readme_client_example_runs(stack: Stack, key: str, las_file, tmp_path: Path,
+                                    monkeypatch: pytest.MonkeyPatch,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    readme = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"^```python\n(.*?)^```", readme, flags=re.MULTILINE | re.DOTALL)
+    code = next(block for block in blocks if "lidar_outliers.client" in block)
+    assert '"http://127.0.0.1:8000"' in code
+    shutil.copy(las_file[0], tmp_path / "scan.las")
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code.replace('"http://127.0.0.1:8000"', repr(stack.url)), "README.md", "exec"),
+         {"key": key})
+    assert capsys.readouterr().out.splitlines()[-1] == "100 %"
+    assert laspy.read(tmp_path / "flagged.laz").header.are_points_compressed
 
 
 def test_cli_submit_downloads_result_and_statistics(stack: Stack, key: str, las_file,
