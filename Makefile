@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install bytecode run test lint bench clean
+.PHONY: install bytecode run test lint bench vendor clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or: make PYTHON=python3 ...)"; exit 1; }
@@ -38,6 +38,11 @@ run: $(STAMP)
 
 bench: $(STAMP) bytecode
 	$(BIN)/lidar-outliers bench
+
+# The three.js files the job page loads (service/static/vendor/three/), refreshed from the version
+# pinned in web/package.json and web/package-lock.json; needs npm. Running the page needs neither.
+vendor:
+	bash web/vendor.sh
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

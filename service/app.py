@@ -20,7 +20,7 @@ from lidar_outliers.jobs.settings import Settings, get_settings
 from lidar_outliers.jobs.store import Store
 from service.jobs import JobService
 from service.problems import MEDIA_TYPE, Problem
-from service.routes import jobs, processes, system, uploads
+from service.routes import jobs, pages, processes, system, uploads
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +101,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _on_validation)
     app.add_exception_handler(StarletteHTTPException, _on_http)
     app.add_exception_handler(Exception, _on_crash(settings))
-    for module in (system, processes, uploads, jobs):
+    for module in (system, processes, uploads, jobs, pages):
         app.include_router(module.router)
+    app.mount("/app/static", pages.static_files(), name="app-static")
     return app

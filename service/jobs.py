@@ -14,9 +14,9 @@ import uuid
 from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from lidar_outliers import lasio
+from lidar_outliers import lasio, view
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.settings import Settings
@@ -45,6 +45,8 @@ from service import queue
 from service.problems import Problem, storage_unavailable
 from service.processes import CLOUD_INPUT, TRAJECTORY_INPUT, preflight, resolve_inputs
 from service.uploads import too_large
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -354,6 +356,21 @@ class JobService:
         key = layout.preview_key(job_id)
         return key, self._derive(job, key, render_preview, statistics=True)
 
+    def view_points(self, user: User, job_id: str) -> tuple[str, ObjectInfo]:
+        """The viewer's default decimation of the flagged cloud, made once and stored."""
+        job, _, _ = self.result(user, job_id, "cloud")
+        key = layout.view_points_key(job_id)
+
+        def make(result: Path, out: Path) -> None:
+            out.write_bytes(view.view_points(result))
+
+        return key, self._derive(job, key, make)
+
+    def view_points_bytes(self, user: User, job_id: str, max_points: int) -> bytes:
+        """Another decimation, made on each request (not kept: any size may be asked for)."""
+        job, _, _ = self.result(user, job_id, "cloud")
+        return self._with_local_result(job, lambda result: view.view_points(result, max_points))
+
     def _derive(self, job: Job, key: str, make: Callable[[Path, Path], Any],
                 statistics: bool = False) -> ObjectInfo:
         """The object under ``key``, made from a local copy of the job's result when missing.
@@ -361,6 +378,22 @@ class JobService:
         info = self._info(key)
         if info is not None:
             return info
+
+        def build(result: Path) -> None:
+            out = result.with_name("out-" + key.rsplit("/", 1)[-1])
+            make(result, out)
+            self.storage.put_file(key, out, move=True)
+
+        self._with_local_result(job, build, statistics)
+        info = self._info(key)
+        if info is None:  # dismissed meanwhile
+            raise Problem(404, "no-such-job", f"the results of job {job.id} were deleted")
+        return info
+
+    def _with_local_result(self, job: Job, use: Callable[[Path], T],
+                           statistics: bool = False) -> T:
+        """``use(path)`` of a local copy of the job's result in a scratch folder (removed
+        afterwards); with ``statistics`` the statistics lie beside it."""
         folder = layout.scratch(self.settings, f"derive-{job.id}")
         try:
             result_key = layout.result_key(job.id, job.laz)
@@ -368,9 +401,7 @@ class JobService:
             self.storage.get_file(result_key, result)
             if statistics:  # beside the result, where the preview looks for it
                 self.storage.get_file(layout.statistics_key(job.id), folder / "statistics.json")
-            out = folder / ("out-" + key.rsplit("/", 1)[-1])
-            make(result, out)
-            self.storage.put_file(key, out, move=True)
+            return use(result)
         except ObjectMissing:
             raise Problem(404, "no-such-job",
                           f"the results of job {job.id} were deleted") from None
@@ -378,10 +409,6 @@ class JobService:
             raise storage_unavailable(exc) from None
         finally:
             shutil.rmtree(folder, ignore_errors=True)
-        info = self._info(key)
-        if info is None:  # dismissed meanwhile
-            raise Problem(404, "no-such-job", f"the results of job {job.id} were deleted")
-        return info
 
     # ---- retention ---------------------------------------------------------------------------
 

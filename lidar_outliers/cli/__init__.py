@@ -41,7 +41,7 @@ def fail(message: str, status: int) -> None:
 
 
 #: The sub-commands, each a module of this package with ``register(subparsers)``.
-COMMANDS = ("detect", "detectors", "simulate", "plot", "bench", "serve", "users")
+COMMANDS = ("detect", "detectors", "simulate", "plot", "bench", "serve", "submit", "users")
 
 
 def command_modules(only: str | None = None) -> dict[str, ModuleType]:

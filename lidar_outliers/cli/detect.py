@@ -1,8 +1,9 @@
 """`lidar-outliers detect IN -o OUT`: run a pipeline of detectors on a LAS/LAZ file locally.
 
 Stages are given as groups ``--detector NAME [--option VALUE ...]`` (options generated from the
-parameter models of the detectors), in pipeline order, or as a JSON file with ``--params``;
-``--detector`` groups replace the pipeline of the file, the other flags override its settings.
+parameter models of the detectors), in pipeline order, or as a JSON document with ``--params``
+(a file, or the object itself); ``--detector`` groups replace the pipeline of the document, the
+other flags override its settings.
 Without a pipeline the sensor profile chooses one (``--profile``, default auto from the file:
 spinning -> snow, airborne -> detached, mobile -> transient then height_field). ``--trajectory``
 gives the platform's path (lines of ``time x y z``) so that ``transient``
@@ -132,13 +133,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("input", metavar="IN", help="input LAS or LAZ file")
     parser.add_argument("-o", "--output", required=True, metavar="OUT", help="output file")
-    parser.add_argument("--params", metavar="JSON", help="pipeline parameters as a JSON file")
+    add_pipeline_arguments(parser)
+    parser.add_argument("--stats", metavar="FILE", help="write the statistics JSON here")
+    fmt = parser.add_mutually_exclusive_group()
+    fmt.add_argument("--laz", dest="laz", action="store_true", default=None, help="write LAZ")
+    fmt.add_argument("--las", dest="laz", action="store_false", help="write uncompressed LAS")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options that make the pipeline document (:func:`build_params` reads them); shared
+    with `submit`."""
+    parser.add_argument("--params", metavar="JSON|FILE",
+                        help="pipeline parameters: a JSON file, or the JSON object itself")
     parser.add_argument(
         "--detector", metavar="NAME", action="append",
         help="start a pipeline stage (" + ", ".join(DETECTORS) + "); its options follow it; "
         "repeat for more stages",
     )
-    parser.add_argument("--stats", metavar="FILE", help="write the statistics JSON here")
     parser.add_argument(
         "--trajectory", metavar="FILE",
         help="the platform's trajectory: text lines 'time x y z' (same time base and "
@@ -164,25 +177,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "from the file's header and point layout; spinning -> snow, airborne -> detached, "
         "mobile -> transient then height_field)",
     )
-    fmt = parser.add_mutually_exclusive_group()
-    fmt.add_argument("--laz", dest="laz", action="store_true", default=None, help="write LAZ")
-    fmt.add_argument("--las", dest="laz", action="store_false", help="write uncompressed LAS")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    parser.set_defaults(func=run)
 
 
 def build_params(args: argparse.Namespace) -> PipelineParams:
     """The pipeline document from --params, the --detector groups and the other flags."""
-    data: dict[str, Any] = {}
-    if args.params:
-        try:
-            data = json.loads(Path(args.params).read_text())
-        except OSError as exc:
-            raise ParameterError(f"cannot read --params {args.params}: {exc.strerror}") from None
-        except json.JSONDecodeError as exc:
-            raise ParameterError(f"--params {args.params} is not valid JSON: {exc}") from None
-        if not isinstance(data, dict):
-            raise ParameterError(f"--params {args.params} must hold a JSON object")
+    data = read_params_document(args.params) if args.params else {}
     stages = args.extra or []
     if stages:
         data["pipeline"] = [{"detector": name, **{k: _option_value(v) for k, v in values.items()}}
@@ -199,6 +198,21 @@ def build_params(args: argparse.Namespace) -> PipelineParams:
         return PipelineParams.model_validate(data)
     except ValidationError as exc:
         raise ParameterError(_message(exc, args, stages)) from None
+
+
+def read_params_document(value: str) -> dict[str, Any]:
+    """``--params``: the JSON object itself (text starting with ``{``) or a file holding one."""
+    inline = value.lstrip().startswith("{")
+    where = "--params" if inline else f"--params {value}"
+    try:
+        data = json.loads(value if inline else Path(value).read_text())
+    except OSError as exc:
+        raise ParameterError(f"cannot read --params {value}: {exc.strerror}") from None
+    except json.JSONDecodeError as exc:
+        raise ParameterError(f"{where} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise ParameterError(f"{where} must hold a JSON object")
+    return data
 
 
 def _option_value(text: str) -> Any:
@@ -227,7 +241,9 @@ def _message(exc: ValidationError, args: argparse.Namespace, stages: list) -> st
         return f"--detector {name}: {text}"
     if loc and loc[0] in _PIPELINE_FLAGS and getattr(args, loc[0], None) not in (None, True):
         return f"{_PIPELINE_FLAGS[loc[0]]}: {text}"
-    where = f" in {args.params}" if args.params else ""
+    where = ""
+    if args.params:
+        where = " in --params" if args.params.lstrip().startswith("{") else f" in {args.params}"
     return validation_message(exc) + where
 
 

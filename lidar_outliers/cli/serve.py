@@ -193,7 +193,8 @@ def _development_key(settings) -> str | None:
 
 def _banner(host: str, port: int, data_dir: Path, redis_url: str, key: str | None) -> None:
     lines = [
-        f"lidar-outliers API on http://{host}:{port} (docs: http://{host}:{port}/docs)",
+        f"lidar-outliers API on http://{host}:{port} (docs: http://{host}:{port}/docs, "
+        f"job page: http://{host}:{port}/app)",
         f"data in {data_dir}; Redis at {redis_url}",
     ]
     if key:

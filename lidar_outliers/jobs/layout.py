@@ -50,6 +50,11 @@ def preview_key(job_id: str) -> str:
     return job_prefix(job_id) + "preview.png"
 
 
+def view_points_key(job_id: str) -> str:
+    """The viewer's decimated points of a job's result (made on first request)."""
+    return job_prefix(job_id) + "view.points"
+
+
 def upload_key(user_id: int, upload_id: str, suffix: str) -> str:
     return f"uploads/{user_id}/{upload_id}{suffix}"
 

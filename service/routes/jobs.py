@@ -6,6 +6,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
+from lidar_outliers import view
 from service.deps import ServiceDep, UserDep
 from service.downloads import object_response
 from service.jobs import status_document
@@ -62,6 +63,8 @@ def get_results(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, An
                   "title": "flagged cloud (?keep=inliers|outliers, ?format=las|laz)"},
         "statistics": {"href": f"{base}/statistics", "type": "application/json"},
         "preview": {"href": f"{base}/preview", "type": "image/png"},
+        "points": {"href": f"{base}/points", "type": view.MEDIA_TYPE,
+                   "title": "decimated points for a viewer (?max_points=N)"},
     }
 
 
@@ -95,3 +98,22 @@ def get_preview(job_id: str, request: Request, service: ServiceDep, user: UserDe
     """A PNG of the flagged cloud, rendered on first request."""
     key, info = service.preview(user, job_id)
     return object_response(request, service.storage, key, info, "image/png")
+
+
+@router.get("/jobs/{job_id}/results/points", response_class=Response,
+            responses={200: {"content": {view.MEDIA_TYPE: {}}}})
+def get_points(
+    job_id: str,
+    request: Request,
+    service: ServiceDep,
+    user: UserDep,
+    max_points: Annotated[int, Query(ge=1, le=5_000_000)] = view.DEFAULT_MAX_POINTS,
+) -> Response:
+    """At most ``max_points`` points of the flagged cloud for a viewer, spread evenly in space
+    with every flagged point kept: float32 xyz about a centre and the uint16 outlier_flags after
+    a JSON header (layout in ``lidar_outliers/view.py``)."""
+    if max_points == view.DEFAULT_MAX_POINTS:  # what the page asks for: made once, kept
+        key, info = service.view_points(user, job_id)
+        return object_response(request, service.storage, key, info, view.MEDIA_TYPE)
+    return Response(service.view_points_bytes(user, job_id, max_points),
+                    media_type=view.MEDIA_TYPE)

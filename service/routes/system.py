@@ -27,6 +27,8 @@ def landing() -> dict[str, Any]:
             {"href": "/openapi.json", "rel": "service-desc",
              "type": "application/vnd.oai.openapi+json;version=3.0"},
             {"href": "/health", "rel": "status"},
+            {"href": "/app", "rel": "alternate", "type": "text/html",
+             "title": "job page: upload, follow and view jobs in a browser"},
         ],
     }
 
