@@ -22,6 +22,7 @@ LIGHT_MODULES = [
     "algorithms.dror",
     "algorithms.snow",
     "algorithms.detached",
+    "algorithms.platform_evidence",  # imported by the profile choice of every command
 ]
 
 #: Modules that none of them may import.
