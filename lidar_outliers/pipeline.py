@@ -74,7 +74,7 @@ def resolve_stages(
     :func:`~lidar_outliers.profiles.profile_evidence`), else on the evidence of the header
     ``facts`` alone (weak: the airborne pipeline, said so). The note then holds ``profile``,
     ``profile_source`` (given / auto), ``profile_reason``, ``profile_confidence`` and the
-    evidence used (``profile_facts``).
+    evidence used (``profile_facts``, and ``profile_basis`` in a few words).
     """
     from lidar_outliers.profiles import choose_profile, profile_evidence, profile_stages
 
@@ -88,9 +88,10 @@ def resolve_stages(
         if params.profile == "auto":
             choice = choose_profile(evidence)
             profile, source = choice.profile, "auto"
-            reason, confidence = choice.reason, choice.confidence
+            reason, confidence, basis = choice.reason, choice.confidence, choice.basis
         else:
-            profile, source, reason, confidence = params.profile, "given", "named by the job", None
+            profile, source, reason = params.profile, "given", "named by the job"
+            confidence = basis = None
         stages = profile_stages(profile, ok)
         names = " then ".join(s.detector for s in stages)
         note = {
@@ -99,6 +100,7 @@ def resolve_stages(
             "profile_source": source,
             "profile_reason": reason,
             "profile_confidence": confidence,
+            "profile_basis": basis,
             "profile_facts": dict(evidence),
             "default_reason": f"{profile} profile, {why}: {names}",
         }

@@ -92,12 +92,14 @@ Confidence = Literal["high", "medium", "low"]
 
 @dataclass(frozen=True)
 class ProfileChoice:
-    """The profile chosen for a file, why, how sure, and the evidence used (JSON-able)."""
+    """The profile chosen for a file, why (``reason``, and ``basis`` in a few words), how sure,
+    and the evidence used (JSON-able)."""
 
     profile: str
     reason: str
     confidence: Confidence
     evidence: dict[str, Any] = field(default_factory=dict)
+    basis: str = ""
 
 
 def profile_evidence(facts: Mapping[str, Any], sample: Any = None) -> dict[str, Any]:
@@ -210,53 +212,57 @@ def choose_profile(evidence: Mapping[str, Any]) -> ProfileChoice:
     still = measured and speed < STILL_SPEED
     timed = ev.get("usable_gps_time")
 
-    def pick(profile: str, reason: str, confidence: Confidence) -> ProfileChoice:
-        return ProfileChoice(profile, reason, confidence, ev)
+    def pick(profile: str, reason: str, confidence: Confidence, basis: str) -> ProfileChoice:
+        return ProfileChoice(profile, reason, confidence, ev, basis)
 
-    def ground(why: str, confidence: Confidence) -> ProfileChoice:
+    def ground(why: str, confidence: Confidence, basis: str) -> ProfileChoice:
         if still:
             return pick("terrestrial", f"{why}; the sensor stood still ({speed:g} m/s)",
-                        confidence)
-        return pick("mobile", why, confidence)
+                        confidence, f"{basis}, still")
+        return pick("mobile", why, confidence, basis)
 
     if names and ev.get("sensor_origin_inside_xy_bounds"):
         return pick("spinning", f"channel dimension {', '.join(names)} and the sensor origin "
-                    "(0, 0, 0) inside the XY bounds", "high")
+                    "(0, 0, 0) inside the XY bounds", "high", "channels around the origin")
     if pulses >= MIN_PULSES and down is not None:
         share = f"{100 * down:.0f} % of {pulses} pulses' beams within 45 deg of nadir"
+        beams = f"{100 * down:.0f} % of beams down"
         if down >= DOWN_SHARE:
-            return pick("airborne", f"{share}: a sensor looking down", "high")
+            return pick("airborne", f"{share}: a sensor looking down", "high", beams)
         if down <= SIDE_SHARE:
-            return ground(f"{share}: a scanner looking sideways", "high")
+            return ground(f"{share}: a scanner looking sideways", "high", beams)
     if measured and speed >= AIRCRAFT_SPEED:
         return pick("airborne", f"platform speed {speed:g} m/s (>= {AIRCRAFT_SPEED:g}: an "
-                    "aircraft)", "high")
+                    "aircraft)", "high", f"{speed:.0f} m/s")
     if measured and speed <= GROUND_SPEED:
         return ground(f"platform speed {speed:g} m/s (<= {GROUND_SPEED:g}: a ground vehicle, "
-                      "no pulse directions)", "medium")
+                      "no pulse directions)", "medium", f"{speed:.1f} m/s")
     if bounded and speed <= GROUND_SPEED:
         return pick("mobile", f"platform speed at most {speed:g} m/s over the file's "
                     f"{windows} short stretch(es) of time (<= {GROUND_SPEED:g}: a ground vehicle)",
-                    "low")
+                    "low", f"<= {speed:.1f} m/s")
     if occupied is not None and occupied >= NEAR_SENSOR_DENSITY:
         why = (f"{occupied:g} points per m2 where there are points (>= "
                f"{NEAR_SENSOR_DENSITY:g}: surfaces a few metres from the sensor)")
+        basis = f"{occupied:.0f} points/m2 near the sensor"
         if timed is False:
-            return pick("terrestrial", f"{why}, no usable GPS time", "medium")
-        return pick("mobile", why, "medium")
+            return pick("terrestrial", f"{why}, no usable GPS time", "medium",
+                        f"{basis}, no time")
+        return pick("mobile", why, "medium", basis)
     if scan is not None and scan > AIRBORNE_MAX_SCAN_ANGLE:
         return pick("mobile", f"scan angles up to {scan:g} deg (> {AIRBORNE_MAX_SCAN_ANGLE:g}: "
-                    "not a scanner looking down)", "low")
+                    "not a scanner looking down)", "low", f"scan angles to {scan:.0f} deg")
     hinted = header_hint(ev.get("system_identifier", ""), ev.get("generating_software", ""))
     if hinted is not None and hinted[0] != "spinning":  # snow needs the sensor-frame test
         return pick(hinted[0], f"no evidence in the points; the header names {hinted[1]!r}",
-                    "low")
+                    "low", f"header {hinted[1]!r}")
     if names:
         why = (f"channel dimension {', '.join(names)} but the sensor origin is outside the XY "
                "bounds, and no other evidence")
     else:
         why = "no evidence of the platform (no pulse directions, speed or near-sensor density)"
-    return pick("airborne", f"{why}: the airborne pipeline, which flags least when wrong", "low")
+    return pick("airborne", f"{why}: the airborne pipeline, which flags least when wrong", "low",
+                "no evidence")
 
 
 def header_hint(*texts: str) -> tuple[str, str] | None:
