@@ -474,31 +474,31 @@ def read_profile_sample(
     consecutive points at even steps through the file (so the sample spans the whole
     acquisition, and each run holds whole pulses and scan lines).
 
-    Files of up to 4 x ``max_points`` points are read through once; larger ones are read run by
-    run after a seek, in a LAZ file with fixed-size chunks from chunk boundaries (a run then
-    costs its own points only), so the cost is bounded whatever the file's size.
+    Files of up to 4 x ``max_points`` points (or LAZ files of under ten chunks) are read through
+    once; larger ones run by run after a seek, in a LAZ file with fixed-size chunks from chunk
+    boundaries (a run then costs its own points only), so the cost is bounded whatever the
+    file's size.
     """
     name = Path(path).name
     with _laspy_errors(name), laspy.open(path) as reader:
         header = reader.header
     n = int(header.point_count)
+    count = max(1, max_points // run_points)
+    chunk = _laz_chunk_points(header)
+    # One pass costs little below 4 x max_points, or when a LAZ file has too few chunks to
+    # start ten runs on their boundaries (under ten chunks, 500 k points at the usual 50 k).
+    sequential = n <= 4 * max_points or bool(chunk and n // chunk < 10)
     runs: list[tuple[int, int]]  # (first point, points)
     if n <= max_points:
         runs = [(0, n)] if n else []
-    elif n <= 4 * max_points:
-        count = max(1, max_points // run_points)
+    elif sequential or not chunk:
         runs = [(i * (n // count), run_points) for i in range(count)]
-    else:
-        count = max(1, max_points // run_points)
-        chunk = _laz_chunk_points(header)
-        if chunk:  # whole chunks are decompressed: start runs on their boundaries
-            count = max(1, min(count, n // chunk))
-            step = (n // chunk) // count * chunk
-            length = min(chunk, max(run_points, max_points // count))
-            runs = [(i * step, length) for i in range(count)]
-        else:
-            runs = [(i * (n // count), run_points) for i in range(count)]
-    records = _read_runs(path, runs, sequential=n <= 4 * max_points)
+    else:  # whole chunks are decompressed: start runs on their boundaries
+        count = min(count, n // chunk)
+        step = (n // chunk) // count * chunk
+        length = min(chunk, max(run_points, max_points // count))
+        runs = [(i * step, length) for i in range(count)]
+    records = _read_runs(path, runs, sequential=sequential)
     grid, origin = grid_origin(header)
     scales = np.asarray(header.scales)
     dims = set(header.point_format.dimension_names)
