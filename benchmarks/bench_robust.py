@@ -41,8 +41,7 @@ sys.path.insert(0, str(ROOT))
 from algorithms.detached import detect_detached  # noqa: E402
 from algorithms.dror import detect_dror  # noqa: E402
 from algorithms.snow import detect_snow  # noqa: E402
-from lidar_outliers.lasio import inspect_las  # noqa: E402
-from lidar_outliers.profiles import choose_profile  # noqa: E402
+from lidar_outliers.profiles import choose_profile, file_evidence  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
 
@@ -77,7 +76,7 @@ def bench_wads(folder: Path) -> dict[str, Any]:
         with np.load(path.with_name(path.name.split(".")[0] + ".truth.npz")) as t:
             truth = t["is_outlier"].astype(bool)
         xyz = np.c_[las.x, las.y, las.z]  # sensor frame: origin (0, 0, 0)
-        profile = choose_profile(inspect_las(path).to_dict())
+        profile = choose_profile(file_evidence(path)).profile
         runs = {
             "dror": timed(detect_dror, xyz),
             "snow": timed(detect_snow, xyz, np.asarray(las.intensity)),
@@ -121,7 +120,7 @@ def bench_airborne(folder: Path, patch_speed: bool) -> dict[str, Any]:
             labelled = t["is_outlier"].astype(bool)
         xyz = np.c_[las.x, las.y, las.z]
         xyz -= np.floor(xyz.mean(axis=0))
-        profile = choose_profile(inspect_las(path).to_dict())
+        profile = choose_profile(file_evidence(path)).profile
         runs = {"detached": timed(detect_detached, xyz)}
         if patch_speed:
             from algorithms.patch import detect_patch
@@ -153,7 +152,7 @@ def bench_isprs(folder: Path) -> dict[str, Any]:
         las = laspy.read(path)
         xyz = np.c_[las.x, las.y, las.z]
         xyz -= np.floor(xyz.mean(axis=0))
-        profile = choose_profile(inspect_las(path).to_dict())
+        profile = choose_profile(file_evidence(path)).profile
         res, sec = timed(detect_detached, xyz)
         n_f = int(res.flagged.sum())
         out[path.stem] = {"flagged": n_f, "pct": 100.0 * n_f / len(xyz),
@@ -181,7 +180,7 @@ def bench_simulated(cache: Path, seeds: int, scale: float) -> dict[str, Any]:
             cloud = read_cloud(path)
             with np.load(path.with_suffix(".truth.npz")) as t:
                 truth = t["is_outlier"].astype(bool)
-            profile = choose_profile(inspect_las(path).to_dict())
+            profile = choose_profile(file_evidence(path)).profile
             res, sec = timed(detect_detached, cloud.xyz)
             f = res.flagged
             s = {"recall": float(f[truth].mean()) if truth.any() else float("nan"),

@@ -9,6 +9,9 @@ Three jobs, kept apart from the detectors (which only ever see numpy arrays):
 * :func:`read_cloud` reads the points in chunks into a :class:`Cloud`: coordinates as float64
   relative to a local origin (so that polynomial arithmetic on coordinates near 5,000,000 m keeps
   its precision), GPS time as float64 and the few other dimensions the detectors need.
+* :func:`read_profile_sample` reads a bounded sample of short runs of consecutive points spread
+  over the file (a :class:`ProfileSample`), with the dimensions that tell the platform apart
+  (return numbers, scan angle, scanner channel), for the choice of the sensor profile.
 * :func:`write_result` rewrites the input chunk by chunk with every original dimension, VLR, EVLR
   and CRS, plus the extra-bytes dimensions ``outlier_flags`` and ``<detector>_score``. Output goes
   to a temporary name in the target folder and is renamed when complete, so a failed or repeated
@@ -76,6 +79,9 @@ class LasFacts:
     geotiff_crs: bool = False
     vlrs: list[str] = field(default_factory=list)
     evlrs: list[str] = field(default_factory=list)
+    system_identifier: str = ""
+    generating_software: str = ""
+    geographic: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -183,12 +189,36 @@ def inspect_las(path: str | os.PathLike[str]) -> LasFacts:
         geotiff_crs=any(u == "LASF_Projection" and r == 34735 for u, r, _ in all_records),
         vlrs=[f"{u}/{r}" for u, r, _ in vlrs],
         evlrs=[f"{u}/{r}" for u, r, _ in evlrs],
+        system_identifier=_header_text(head[26:58]),
+        generating_software=_header_text(head[58:90]),
+        geographic=_geographic(wkt, all_records),
     )
     # The header is sound: laspy may now parse it (extra-bytes descriptors, LAZ chunk table).
     with _laspy_errors(name):
         with laspy.open(path) as reader:
             facts.extra_dimensions = list(reader.header.point_format.extra_dimension_names)
     return facts
+
+
+def _geographic(wkt: str | None, records: list[tuple[str, int, bytes]]) -> bool:
+    """True when the CRS is geographic (coordinates in degrees): a WKT that starts with a
+    geographic CRS, or GeoTIFF's GTModelTypeGeoKey (1024) = 2."""
+    if wkt is not None:
+        return wkt.lstrip().upper().startswith(("GEOGCS", "GEOGCRS", "GEODCRS"))
+    for user, record_id, payload in records:
+        if user == "LASF_Projection" and record_id == 34735 and len(payload) >= 8:
+            keys = struct.unpack_from("<H", payload, 6)[0]
+            for i in range(min(keys, (len(payload) - 8) // 8)):
+                key, location, _, value = struct.unpack_from("<4H", payload, 8 + 8 * i)
+                if key == 1024 and location == 0:
+                    return value == 2
+    return False
+
+
+def _header_text(raw: bytes) -> str:
+    """A fixed-width header string: up to its first NUL, printable ASCII, stripped."""
+    text = raw.split(b"\0", 1)[0].decode("ascii", errors="replace")
+    return "".join(c for c in text if c.isprintable()).strip()
 
 
 def _walk_vlrs(
@@ -402,6 +432,140 @@ def read_cloud(
         if progress is not None:
             progress(lo + (hi - lo) * stop / max(n, 1), f"reading {stop:,} of {n:,} points")
     return Cloud(xyz, origin, gps, psid, cls, intensity)
+
+
+#: Points read for the profile choice (:func:`read_profile_sample`), whatever the file's size.
+PROFILE_SAMPLE_POINTS = 250_000
+#: Consecutive points per run of the sample: whole pulses and scan lines, a millisecond or more
+#: of acquisition.
+PROFILE_RUN_POINTS = 2_500
+
+
+@dataclass
+class ProfileSample:
+    """A bounded sample of a file's points, for the choice of the sensor profile.
+
+    Runs of consecutive points (in file order) spread evenly over the file; every array has one
+    entry per sampled point. ``xyz`` is relative to ``origin`` (world = xyz + origin);
+    ``source`` is point_source_id x 16 + scanner channel (one id per scanner and flight line);
+    ``scan_angle`` in degrees. Dimensions the point format lacks are None.
+    """
+
+    xyz: np.ndarray
+    origin: np.ndarray
+    gps_time: np.ndarray | None
+    return_number: np.ndarray | None
+    number_of_returns: np.ndarray | None
+    source: np.ndarray
+    scan_angle: np.ndarray | None
+    points_in_file: int
+    runs: int
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+def read_profile_sample(
+    path: str | os.PathLike[str],
+    max_points: int = PROFILE_SAMPLE_POINTS,
+    run_points: int = PROFILE_RUN_POINTS,
+) -> ProfileSample:
+    """At most ``max_points`` points of a validated file: all of a small file, else runs of
+    consecutive points at even steps through the file (so the sample spans the whole
+    acquisition, and each run holds whole pulses and scan lines).
+
+    Files of up to 4 x ``max_points`` points (or LAZ files of under ten chunks) are read through
+    once; larger ones run by run after a seek, in a LAZ file with fixed-size chunks from chunk
+    boundaries (a run then costs its own points only), so the cost is bounded whatever the
+    file's size.
+    """
+    name = Path(path).name
+    with _laspy_errors(name), laspy.open(path) as reader:
+        header = reader.header
+    n = int(header.point_count)
+    count = max(1, max_points // run_points)
+    chunk = _laz_chunk_points(header)
+    # One pass costs little below 4 x max_points, or when a LAZ file has too few chunks to
+    # start ten runs on their boundaries (under ten chunks, 500 k points at the usual 50 k).
+    sequential = n <= 4 * max_points or bool(chunk and n // chunk < 10)
+    runs: list[tuple[int, int]]  # (first point, points)
+    if n <= max_points:
+        runs = [(0, n)] if n else []
+    elif sequential or not chunk:
+        runs = [(i * (n // count), run_points) for i in range(count)]
+    else:  # whole chunks are decompressed: start runs on their boundaries
+        count = min(count, n // chunk)
+        step = (n // chunk) // count * chunk
+        length = min(chunk, max(run_points, max_points // count))
+        runs = [(i * step, length) for i in range(count)]
+    records = _read_runs(path, runs, sequential=sequential)
+    grid, origin = grid_origin(header)
+    scales = np.asarray(header.scales)
+    dims = set(header.point_format.dimension_names)
+
+    def column(dim: str, dtype: type) -> np.ndarray:
+        if not records:
+            return np.zeros(0, dtype=dtype)
+        return np.concatenate([np.asarray(r[dim], dtype=dtype) for r in records])
+
+    xyz = (np.concatenate([local_xyz(r, grid, scales) for r in records]) if records
+           else np.zeros((0, 3)))
+    channel = column("scanner_channel", np.int64) if "scanner_channel" in dims else 0
+    if "scan_angle" in dims:  # point formats 6-10: 0.006 degree steps
+        scan_angle = column("scan_angle", np.float64) * 0.006
+    elif "scan_angle_rank" in dims:
+        scan_angle = column("scan_angle_rank", np.float64)
+    else:
+        scan_angle = None
+    return ProfileSample(
+        xyz=xyz,
+        origin=origin,
+        gps_time=column("gps_time", np.float64) if "gps_time" in dims else None,
+        return_number=column("return_number", np.int64),
+        number_of_returns=column("number_of_returns", np.int64),
+        source=column("point_source_id", np.int64) * 16 + channel,
+        scan_angle=scan_angle,
+        points_in_file=n,
+        runs=len(runs),
+    )
+
+
+def _read_runs(
+    path: str | os.PathLike[str], runs: list[tuple[int, int]], sequential: bool
+) -> list[laspy.ScaleAwarePointRecord]:
+    """The point records of each (first point, points) run, in file order."""
+    name = Path(path).name
+    if sequential:
+        wanted = np.zeros(0, dtype=np.int64)
+        if runs:
+            wanted = np.concatenate([np.arange(a, a + k) for a, k in runs])
+        out, start = [], 0
+        for chunk in iter_chunks(path):
+            stop = start + len(chunk)
+            lo, hi = np.searchsorted(wanted, [start, stop])
+            if hi > lo:
+                out.append(chunk[wanted[lo:hi] - start])
+            start = stop
+        return out
+    out = []
+    # The single-threaded LAZ decoder seeks in milliseconds; the parallel one re-reads chunks.
+    backend = laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None
+    with _laspy_errors(name), laspy.open(path, laz_backend=backend) as reader:
+        for first, count in runs:
+            reader.seek(first)
+            out.append(reader.read_points(count))
+    return out
+
+
+def _laz_chunk_points(header: laspy.LasHeader) -> int | None:
+    """Points per LAZ chunk from the LASzip VLR (None: not LAZ, or variable-size chunks)."""
+    for vlr in header.vlrs:
+        if isinstance(vlr, laspy.vlrs.known.LasZipVlr):
+            raw = bytes(vlr.record_data_bytes())
+            if len(raw) >= 16:
+                (chunk,) = struct.unpack_from("<I", raw, 12)
+                return chunk if 0 < chunk < 0xFFFFFFFF else None
+    return None
 
 
 # --------------------------------------------------------------------------- writing

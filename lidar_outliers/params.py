@@ -48,12 +48,14 @@ class PipelineParams(BaseModel):
         description="Stages in order. Default: chosen by the sensor profile (see 'profile'); "
         "the paper's pipeline is [temporal, patch].",
     )
-    profile: Literal["auto", "mobile", "spinning", "airborne"] = Field(
+    profile: Literal["auto", "mobile", "spinning", "airborne", "terrestrial"] = Field(
         "auto",
         description="Sensor kind whose default pipeline runs when 'pipeline' is not given: "
         "spinning -> snow; airborne -> detached; mobile -> transient then height_field "
-        "(height_field alone without gps_time). 'auto' decides from the file's header and "
-        "point layout; ignored when 'pipeline' is given.",
+        "(height_field alone without gps_time); terrestrial -> height_field. 'auto' decides "
+        "from the evidence a sample of the file's points carries (beam directions of pulses "
+        "with several returns, platform speed, near-sensor density, scan angles, channel "
+        "dimensions); ignored when 'pipeline' is given.",
     )
     classify: bool = Field(
         True, description="Write noise_class to flagged points (and 2/1 for ground)."

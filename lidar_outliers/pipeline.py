@@ -65,27 +65,33 @@ def usable_gps_time(gps_time: np.ndarray | None) -> tuple[bool, str]:
 def resolve_stages(
     params: PipelineParams, gps_time: np.ndarray | None,
     facts: Mapping[str, Any] | None = None,
+    evidence: Mapping[str, Any] | None = None,
 ) -> tuple[list, dict]:
     """The stages to run and a statistics note on where they came from.
 
-    Without a named pipeline the profile decides (``params.profile``, or for ``auto``
-    :func:`~lidar_outliers.profiles.choose_profile` on ``facts``: the file's header facts, or those
-    of the cloud; without facts ``auto`` means mobile). The note then holds ``profile``,
-    ``profile_source`` (given / auto), ``profile_reason`` and the facts used.
+    Without a named pipeline the profile decides: ``params.profile``, or for ``auto``
+    :func:`~lidar_outliers.profiles.choose_profile` on ``evidence`` (the file's
+    :func:`~lidar_outliers.profiles.profile_evidence`), else on the evidence of the header
+    ``facts`` alone (weak: the airborne pipeline, said so). The note then holds ``profile``,
+    ``profile_source`` (given / auto), ``profile_reason``, ``profile_confidence`` and the
+    evidence used (``profile_facts``, and ``profile_basis`` in a few words).
     """
-    from lidar_outliers.profiles import profile_evidence, profile_stages
+    from lidar_outliers.profiles import choose_profile, profile_evidence, profile_stages
 
     if params.pipeline is not None:
         stages = list(params.pipeline)
         note: dict[str, Any] = {"pipeline_source": "given"}
     else:
         ok, why = usable_gps_time(gps_time)
-        evidence = profile_evidence(facts or {})
+        if evidence is None:
+            evidence = profile_evidence(facts or {})
         if params.profile == "auto":
-            profile, source = evidence["profile"], "auto"
-            reason = evidence["reason"] if facts else "no file facts given: mobile"
+            choice = choose_profile(evidence)
+            profile, source = choice.profile, "auto"
+            reason, confidence, basis = choice.reason, choice.confidence, choice.basis
         else:
             profile, source, reason = params.profile, "given", "named by the job"
+            confidence = basis = None
         stages = profile_stages(profile, ok)
         names = " then ".join(s.detector for s in stages)
         note = {
@@ -93,7 +99,9 @@ def resolve_stages(
             "profile": profile,
             "profile_source": source,
             "profile_reason": reason,
-            "profile_facts": {k: v for k, v in evidence.items() if k not in ("profile", "reason")},
+            "profile_confidence": confidence,
+            "profile_basis": basis,
+            "profile_facts": dict(evidence),
             "default_reason": f"{profile} profile, {why}: {names}",
         }
     seen: set[str] = set()
@@ -126,16 +134,20 @@ def run_pipeline(
     progress: Progress | None = None,
     *,
     facts: LasFacts | Mapping[str, Any] | None = None,
+    evidence: Mapping[str, Any] | None = None,
     progress_span: tuple[float, float] = (0.0, 1.0),
 ) -> PipelineResult:
     """Run the stages of ``params`` on ``cloud``.
 
-    ``facts``: the file's header facts (``LasFacts`` or its dict), used to choose the profile
-    of a job that names no pipeline; without them the cloud's own (:func:`cloud_facts`).
+    ``facts``: the file's header facts (``LasFacts`` or its dict); without them the cloud's own
+    (:func:`cloud_facts`). ``evidence``: the file's profile evidence
+    (:func:`~lidar_outliers.profiles.profile_evidence` of its header and a sample of its
+    points), used to choose the profile of a job that names no pipeline; without it, the
+    evidence of ``facts`` and of a sample of the cloud's own points.
 
     Statistics: ``input`` (file facts when given), ``pipeline_source`` (for a default pipeline
-    also ``profile``, ``profile_source``, ``profile_reason``, ``profile_facts`` and
-    ``default_reason``),
+    also ``profile``, ``profile_source``, ``profile_reason``, ``profile_confidence``,
+    ``profile_facts`` and ``default_reason``),
     ``stages`` (per stage: detector, params as resolved, the detector's ``info`` with sigma
     estimates, points_in, points_tested, points_flagged, critical_value, seconds and, with
     ``reference_classes``, ``confusion`` in the layout of the paper's Tables 2-5 or
@@ -143,7 +155,12 @@ def run_pipeline(
     """
     n = len(cloud)
     fact_dict = facts.to_dict() if isinstance(facts, LasFacts) else facts
-    stages, note = resolve_stages(params, cloud.gps_time, fact_dict or cloud_facts(cloud))
+    if evidence is None and params.pipeline is None and params.profile == "auto":
+        from lidar_outliers.profiles import profile_evidence, sample_cloud
+
+        evidence = profile_evidence(fact_dict or cloud_facts(cloud), sample_cloud(cloud))
+    stages, note = resolve_stages(params, cloud.gps_time, fact_dict or cloud_facts(cloud),
+                                  evidence)
     flags = np.zeros(n, dtype=FLAGS_DTYPE)
     scores: dict[str, np.ndarray] = {}
     classes = cloud.classification.astype(np.uint8, copy=True) if params.classify else None

@@ -65,6 +65,14 @@ def process_file(
         progress(0.0, f"checking {in_path.name}")
     facts = lasio.inspect_las(in_path)
     check_noise_class(params, facts.point_format)
+    evidence = None
+    if params.pipeline is None and params.profile == "auto":
+        # The profile is chosen once per file, from a bounded sample of its points.
+        from lidar_outliers.profiles import file_evidence
+
+        if progress is not None:
+            progress(0.0, f"sampling {in_path.name} for its sensor profile")
+        evidence = file_evidence(in_path, facts.to_dict())
     traj, traj_info = _load_trajectory(trajectory)
     compress = facts.compressed if laz is None else laz
     if laz is None and facts.point_format in lasio.LAZ_LOSSY_FORMATS:
@@ -90,7 +98,7 @@ def process_file(
         cloud = cloud.with_trajectory(traj)
     t_read = time.perf_counter()
     result = run_pipeline(
-        cloud, params, progress, facts=facts, progress_span=(_READ, _DETECT)
+        cloud, params, progress, facts=facts, evidence=evidence, progress_span=(_READ, _DETECT)
     )
     del cloud
     t_detect = time.perf_counter()

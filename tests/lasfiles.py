@@ -44,13 +44,15 @@ def write_las(
     vlrs: Sequence[laspy.VLR] | None = None,
     laz: bool | None = None,
     seed: int = 0,
+    dims: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Write ``xyz`` and the given dimensions to a LAS file, or LAZ when ``laz`` (default: by
     suffix); returns ``path``.
 
     ``extra`` adds extra-bytes dimensions typed by their values; ``random_dims`` fills every other
     standard dimension with random values drawn from ``seed``; ``crs`` adds the WKT VLR, ``evlr``
-    an EVLR; ``vlrs`` are written first (default: :func:`tag_vlr`, ``()`` for none).
+    an EVLR; ``vlrs`` are written first (default: :func:`tag_vlr`, ``()`` for none); ``dims``
+    sets further standard dimensions (``return_number``, ``scan_angle``, ...) by name.
     """
     header = laspy.LasHeader(version=version or VERSION_FOR_FORMAT[point_format],
                              point_format=point_format)
@@ -77,7 +79,7 @@ def write_las(
         fill_random(las, np.random.default_rng(seed))
     for name, values in (("gps_time", gps_time), ("classification", classification),
                          ("point_source_id", point_source_id), ("intensity", intensity),
-                         *(extra or {}).items()):
+                         *(dims or {}).items(), *(extra or {}).items()):
         if values is not None:
             las[name] = values
     path = Path(path)

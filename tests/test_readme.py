@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from lidar_outliers.cli.detectors import listing
+from tests.lasfiles import write_las
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -41,14 +42,8 @@ def write_scan(path: Path, n: int = 3000, spikes: int = 10, seed: int = 0) -> np
     z = 100.0 + 0.02 * np.sin(phase) + rng.normal(0.0, 0.003, n)
     lifted = np.sort(rng.choice(np.arange(20, n - 20), spikes, replace=False))
     z[lifted] += 2.0
-    header = laspy.LasHeader(point_format=6, version="1.4")
-    header.scales = np.array([0.001, 0.001, 0.001])
-    header.offsets = np.array([500_000.0, 5_000_000.0, 0.0])
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = x, y, z
-    las.gps_time = t
-    las.point_source_id = np.ones(n, dtype=np.uint16)
-    las.write(str(path))
+    write_las(path, np.c_[x, y, z], point_format=6, offsets=(500_000.0, 5_000_000.0, 0.0),
+              gps_time=t, point_source_id=np.ones(n, dtype=np.uint16), vlrs=())
     return lifted
 
 

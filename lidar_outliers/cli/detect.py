@@ -3,9 +3,9 @@
 Stages are given as groups ``--detector NAME [--option VALUE ...]`` (options generated from the
 parameter models of the detectors), in pipeline order, or as a JSON document with ``--params``
 (a file, or the object itself); ``--detector`` groups replace the pipeline of the document, the
-other flags override its settings.
-Without a pipeline the sensor profile chooses one (``--profile``, default auto from the file:
-spinning -> snow, airborne -> detached, mobile -> transient then height_field). ``--trajectory``
+other flags override its settings. Without a pipeline the sensor profile chooses one
+(``--profile``, default auto from a sample of the file's points: spinning -> snow, airborne ->
+detached, mobile -> transient then height_field, terrestrial -> height_field). ``--trajectory``
 gives the platform's path (lines of ``time x y z``) so that ``transient``
 also flags points other beams saw through.
 """
@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import typing
 from pathlib import Path
 from typing import Any
 
@@ -172,11 +173,16 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
         "counts to the statistics",
     )
     parser.add_argument(
-        "--profile", choices=["auto", "mobile", "spinning", "airborne"],
+        "--profile", choices=profile_choices(),
         help="sensor kind whose default pipeline runs when no --detector is given (default auto: "
-        "from the file's header and point layout; spinning -> snow, airborne -> detached, "
-        "mobile -> transient then height_field)",
+        "from the evidence a sample of the file's points carries; spinning -> snow, airborne -> "
+        "detached, mobile -> transient then height_field, terrestrial -> height_field)",
     )
+
+
+def profile_choices() -> list[str]:
+    """The values of ``--profile``: those of ``PipelineParams.profile``, so the two agree."""
+    return list(typing.get_args(PipelineParams.model_fields["profile"].annotation))
 
 
 def build_params(args: argparse.Namespace) -> PipelineParams:

@@ -1,5 +1,6 @@
-"""``detached``: for airborne clouds, small clusters under or over the local surface's height
-envelope (:mod:`algorithms.detached`)."""
+"""``detached``: for airborne clouds, returns detached from the surface: small clusters under or
+over its height envelope, pieces under the lowest surface, lone pits
+(:mod:`algorithms.detached`)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ DETECTOR = Detector(
     name="detached",
     parameters=DetachedParameters,
     run=run,
-    summary="Airborne: small clusters under or over the local surface's height envelope.",
+    summary="Airborne: returns detached from the surface (small clusters over or under it, "
+    "pieces under the lowest surface, lone pits).",
     flag_bit=32,
 )

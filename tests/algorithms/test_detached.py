@@ -11,8 +11,13 @@ import pytest
 from algorithms.detached import (
     detect_detached,
     envelope_scores,
+    floor_scores,
     median_spacing,
+    pit_scores,
     small_clusters,
+    surface_scale,
+    voxel_pieces,
+    xy_spacing,
 )
 
 AIRBORNE = Path(__file__).resolve().parents[1] / "data" / "airborne"
@@ -140,3 +145,121 @@ def test_real_airborne_gross_outliers():
     res = detect_detached(np.c_[las.x, las.y, las.z])
     assert res.flagged[gross].mean() >= 0.95
     assert res.flagged[unlabelled].mean() <= 0.001
+
+
+# --------------------------------------------------------------------------- under the surface
+
+
+def slow_pieces(xyz: np.ndarray, size: float) -> np.ndarray:
+    """Pieces by breadth-first search over explicit voxel indices (26 neighbours)."""
+    ijk = np.floor((xyz - xyz.min(axis=0)) / size).astype(int)
+    label = np.full(len(xyz), -1)
+    current = 0
+    for seed in range(len(xyz)):
+        if label[seed] >= 0:
+            continue
+        label[seed] = current
+        queue = [seed]
+        while queue:
+            i = queue.pop()
+            near = np.flatnonzero((np.abs(ijk - ijk[i]).max(axis=1) <= 1) & (label < 0))
+            label[near] = current
+            queue.extend(near.tolist())
+        current += 1
+    return label
+
+
+def same_partition(a: np.ndarray, b: np.ndarray) -> bool:
+    pairs = np.unique(np.c_[a, b], axis=0)
+    return len(pairs) == len(np.unique(a)) == len(np.unique(b))
+
+
+def test_voxel_pieces_match_breadth_first_search():
+    rng = np.random.default_rng(11)
+    xyz = np.vstack([rough_terrain(11, 300), rng.normal([20, 20, -15], 0.5, (20, 3)),
+                     rng.normal([5, 35, 30], 2.0, (15, 3))])
+    for size in (0.7, 1.5, 4.0):
+        assert same_partition(voxel_pieces(xyz, size), slow_pieces(xyz, size))
+    assert voxel_pieces(np.zeros((0, 3)), 1.0).shape == (0,)
+
+
+def test_xy_spacing_of_a_regular_grid():
+    g = np.arange(0, 60, 0.5)
+    xx, yy = np.meshgrid(g, g)
+    xyz = np.c_[xx.ravel(), yy.ravel(), np.zeros(xx.size)]
+    # 1 / sqrt(density) = 0.5 m; the k-th neighbour ring makes it approximate
+    assert xy_spacing(xyz) == pytest.approx(0.5, rel=0.15)
+    assert xy_spacing(xyz[:5]) == 0.0
+
+
+def test_surface_scale_joins_the_surface_and_leaves_clumps_apart():
+    rng = np.random.default_rng(12)
+    ground = rough_terrain(12, 6000)  # 40 m x 40 m, 0.5 m spacing
+    clump = rng.normal([20, 20, -20], 0.5, (50, 3))
+    size, small = surface_scale(np.vstack([ground, clump]), piece_points=1000)
+    assert size is not None and size < 2.0
+    assert small[len(ground):].all() and small[:len(ground)].mean() <= 0.01
+    assert surface_scale(ground[:500], piece_points=1000)[0] is None  # no piece can be large
+
+
+def test_floor_matches_explicit_least_squares():
+    xyz = rough_terrain(13, 500)
+    reference = np.arange(0, 500, 2)
+    candidate = np.zeros(500, bool)
+    candidate[1::10] = True
+    fast = floor_scores(xyz, candidate, reference, k_floor=20, quantile=0.1, below=0.5)
+    for i in np.flatnonzero(candidate):
+        d2 = np.sum((xyz[reference, :2] - xyz[i, :2]) ** 2, axis=1)
+        nb = xyz[reference[np.argsort(d2, kind="stable")[:20]]]
+        c = nb.mean(axis=0)
+        a_mat = np.c_[nb[:, :2] - c[:2], np.ones(20)]
+        coef = np.linalg.lstsq(a_mat, nb[:, 2] - c[2], rcond=None)[0]
+        res = nb[:, 2] - c[2] - a_mat @ coef
+        lower = res <= np.median(res)
+        coef = np.linalg.lstsq(a_mat[lower], nb[lower, 2] - c[2], rcond=None)[0]
+        res = nb[:, 2] - c[2] - a_mat @ coef
+        r = xyz[i, 2] - c[2] - np.r_[xyz[i, :2] - c[:2], 1.0] @ coef
+        assert fast[i] == pytest.approx((np.quantile(res, 0.1) - r) / 0.5, abs=1e-7)
+    assert np.isnan(fast[~candidate]).all()
+    assert np.isnan(floor_scores(xyz, candidate, reference, reach=0.0)[candidate]).sum() > 0
+
+
+def test_pit_scores_match_brute_force():
+    rng = np.random.default_rng(14)
+    xyz = rough_terrain(14, 800)
+    xyz[::97, 2] -= rng.uniform(1, 4, len(xyz[::97]))
+    radius = 4.0
+    fast = pit_scores(xyz, radius, below=1.0, min_points=8)
+    cell = radius / 3
+    ij = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / cell).astype(int)
+    for i in np.flatnonzero(np.isfinite(fast)):
+        same = np.flatnonzero((ij == ij[i]).all(axis=1))
+        assert xyz[i, 2] == xyz[same, 2].min()  # the lowest of its cell
+        block = np.flatnonzero(np.abs(ij - ij[i]).max(axis=1) <= 3)
+        block = block[block != i]
+        assert fast[i] == pytest.approx(xyz[block, 2].min() - xyz[i, 2])
+    assert np.isfinite(fast).sum() > 50
+
+
+def test_low_noise_clumps_pits_and_real_low_ground():
+    """A 60-return clump 20 m under the ground (too big for a cluster) and a lone return 1.5 m
+    under it are found; a 3 m deep ramp joined to the ground and ground seen under a roof are
+    kept."""
+    rng = np.random.default_rng(15)
+    xy = rng.uniform(0, 60, (20000, 2))  # 5.6 points per m2
+    z = 0.05 * xy[:, 0] + rng.normal(0, 0.03, len(xy))
+    ramp = (xy[:, 0] > 20) & (xy[:, 0] < 32) & (np.abs(xy[:, 1] - 30) < 2)
+    z[ramp] -= 3.0 * (xy[ramp, 0] - 20) / 12  # down to 3 m under the street, then a wall
+    roof_xy = rng.uniform([40, 40], [52, 52], (900, 2))
+    roof = np.c_[roof_xy, 0.05 * roof_xy[:, 0] + 4.0]
+    under = (xy[:, 0] > 41) & (xy[:, 0] < 51) & (xy[:, 1] > 41) & (xy[:, 1] < 51)
+    keep = ~under | (rng.random(len(xy)) < 0.05)  # the roof hides most of the ground
+    ground = np.c_[xy, z][keep]
+    clump = rng.normal([15, 45, -20], [2.0, 2.0, 0.3], (60, 3))
+    pit = np.array([[45.0, 15.0, 0.05 * 45 - 1.5]])
+    xyz = np.vstack([ground, roof, clump, pit])
+    res = detect_detached(xyz)
+    n_real = len(ground) + len(roof)
+    assert res.flagged[n_real:].all()
+    assert res.flagged[:n_real].sum() <= 2
+    assert res.info["pieces"]["points_flagged"] >= 60 and res.info["pits"]["points_flagged"] >= 1

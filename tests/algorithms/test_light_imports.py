@@ -22,7 +22,8 @@ HEAVY_BY_DESIGN = {"algorithms.patch", "algorithms.section"}
 #: The module declaring each registered detector's parameters, so a new detector is checked
 #: by being declared.
 LIGHT_MODULES = sorted(
-    {d.parameters.__module__ for d in DETECTORS.values()} - HEAVY_BY_DESIGN)
+    {d.parameters.__module__ for d in DETECTORS.values()} - HEAVY_BY_DESIGN
+    | {"algorithms.platform_evidence"})  # imported by the profile choice of every command
 
 #: Modules that none of them may import.
 HEAVY_MODULES = ["numba", "scipy.spatial", "scipy.sparse", "scipy.stats"]

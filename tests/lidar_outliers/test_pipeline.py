@@ -127,33 +127,45 @@ def test_ground_scores_with_reference_class_2(spiky):
     assert "confusion" not in result.statistics["overall"]  # no noise classes named
 
 
+#: Profile evidence of a ground vehicle (a van at 10 m/s, its beams looking sideways).
+VAN = {"speed_m_s": 10.0, "speed_windows": 20, "pulses": 400, "beams_down_share": 0.2}
+
+
 def test_default_pipeline_and_reason():
     t = np.linspace(0, 1, 50)
-    stages, note = resolve_stages(PipelineParams(), t)
+    stages, note = resolve_stages(PipelineParams(), t, evidence=VAN)
     assert [s.detector for s in stages] == ["transient", "height_field"]
     assert note["pipeline_source"] == "default" and note["profile"] == "mobile"
-    assert note["profile_source"] == "auto"
+    assert note["profile_source"] == "auto" and note["profile_confidence"] == "high"
+    assert "looking sideways" in note["profile_reason"]
+    assert note["profile_facts"]["speed_m_s"] == 10.0
     for gps, why in ((None, "no gps_time"), (np.zeros(50), "same"), (np.full(3, np.nan), "NaN")):
-        stages, note = resolve_stages(PipelineParams(), gps)
+        stages, note = resolve_stages(PipelineParams(), gps, evidence=VAN)
         assert [s.detector for s in stages] == ["height_field"]
         assert why in note["default_reason"] and "height_field" in note["default_reason"]
         assert usable_gps_time(gps)[0] is False
     stages, note = resolve_stages(PipelineParams(pipeline=[{"detector": "section"}]), None)
     assert note == {"pipeline_source": "given"}
-    # A named profile wins over the facts; the paper's pipeline runs when named.
-    stages, note = resolve_stages(PipelineParams(profile="airborne"), t)
+    # Without evidence: the pipeline that does least harm, and the statistics say so.
+    stages, note = resolve_stages(PipelineParams(), t)
+    assert [s.detector for s in stages] == ["detached"]
+    assert note["profile"] == "airborne" and note["profile_confidence"] == "low"
+    # A named profile wins over the evidence; the paper's pipeline runs when named.
+    stages, note = resolve_stages(PipelineParams(profile="airborne"), t, evidence=VAN)
     assert [s.detector for s in stages] == ["detached"] and note["profile_source"] == "given"
+    stages, _ = resolve_stages(PipelineParams(profile="terrestrial"), t)
+    assert [s.detector for s in stages] == ["height_field"]
     stages, _ = resolve_stages(parse_pipeline_params(
         {"pipeline": [{"detector": "temporal"}, {"detector": "patch"}]}), t)
     assert [s.detector for s in stages] == ["temporal", "patch"]
 
 
 def test_default_pipeline_end_to_end_without_gps_time(tmp_path, rng):
-    # 300 points on 1.5 m x 1.5 m: 133 per m2, dense enough to be mobile, not airborne.
+    # The mobile profile on a file without gps_time runs height_field alone.
     xy = rng.uniform(0, 1.5, (300, 2))
     xyz = np.column_stack([xy, rng.normal(0, 0.003, 300)])
     src = write_las(tmp_path / "pf0.las", xyz, point_format=0)
-    stats = process_file(src, tmp_path / "out.las")
+    stats = process_file(src, tmp_path / "out.las", {"profile": "mobile"})
     assert [s["detector"] for s in stats["stages"]] == ["height_field"]
     assert "no gps_time" in stats["default_reason"] and stats["profile"] == "mobile"
     assert set(laspy.read(tmp_path / "out.las").point_format.extra_dimension_names) == {
@@ -167,21 +179,24 @@ def _profile_cloud(xyz: np.ndarray, t: np.ndarray | None, rng) -> Cloud:
 
 
 def test_default_profile_chosen_by_run_pipeline(rng):
-    """Each profile's stages run through run_pipeline; the statistics name the facts used."""
-    # Mobile: a dense 4 m x 4 m strip with gps_time.
+    """Each profile's stages run through run_pipeline, chosen from the cloud's own points when
+    no file evidence is given; the statistics name the evidence used."""
+    # Mobile: a 4 m wide strip recorded by a platform moving 1 m/s along x.
     n = 4000
-    xyz = np.column_stack([rng.uniform(0, 4, (n, 2)), rng.normal(0, 0.003, n)])
     t = np.sort(rng.uniform(0, 10, n))
+    xyz = np.column_stack([t + rng.normal(0, 0.3, n), rng.uniform(0, 4, n),
+                           rng.normal(0, 0.003, n)])
     res = run_pipeline(_profile_cloud(xyz, t, rng), PipelineParams())
     st = res.statistics
     assert [s["detector"] for s in st["stages"]] == ["transient", "height_field"]
-    assert st["profile"] == "mobile" and st["profile_facts"]["points_per_m2"] > 50
+    assert st["profile"] == "mobile" and st["profile_facts"]["speed_m_s"] < 2
     assert set(res.scores) == {"transient", "height_field"}
-    # Airborne: the same number of points over 200 m x 200 m (0.1 per m2).
-    sparse = np.column_stack([rng.uniform(0, 200, (n, 2)), rng.normal(0, 0.05, n)])
-    st = run_pipeline(_profile_cloud(sparse, t, rng), PipelineParams()).statistics
+    # Airborne: an aircraft at 60 m/s over 200 m x 200 m (0.1 points per m2).
+    ta = np.sort(rng.uniform(0, 3.3, n))
+    sparse = np.column_stack([60 * ta, rng.uniform(0, 200, n), rng.normal(0, 0.05, n)])
+    st = run_pipeline(_profile_cloud(sparse, ta, rng), PipelineParams()).statistics
     assert [s["detector"] for s in st["stages"]] == ["detached"]
-    assert st["profile"] == "airborne" and "points per m2" in st["profile_reason"]
+    assert st["profile"] == "airborne" and "platform speed" in st["profile_reason"]
     # Spinning: a sweep around the sensor origin, with the file's ring dimension in the facts.
     az = rng.uniform(0, 2 * np.pi, n)
     rr = rng.uniform(3, 30, n)

@@ -48,7 +48,8 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
     assert "## ISPRS ground-filter samples" in text and "| samp21 | 2,500 |" in text
     assert "| **mean** |" in text
     assert "### Recall by outlier kind" in text and "exhaust_plume" in text
-    assert "## Airborne gross outliers" in text
+    assert "## Real airborne tiles" in text and "| cut.laz | 6,000 | " in text
+    assert "| airborne (" in text and "Targets met on " in text
     for name in DETECTORS:
         assert any(line.startswith(f"| {name} | ") for line in text.split("## Speed")[1]
                    .splitlines())
@@ -60,6 +61,8 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
         for cond, conf in per_cloud.items():
             assert conf["outliers"] == by_cond[cond], (name, cond)
             assert conf["outliers_identified"] + conf["outliers_missed"] == conf["outliers"]
+    cut = numbers["airborne"]["cut"]
+    assert cut["profile"] == "airborne" and cut["gross_found"] <= cut["gross"]
     speed = numbers["speed"]["temporal"]
     assert speed["points"] > 0 and speed["peak_rss_mb"] >= speed["rss_before_mb"] > 0
     assert speed["run_peak_rss_mb"] >= speed["rss_before_mb"]
