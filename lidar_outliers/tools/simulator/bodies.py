@@ -110,6 +110,13 @@ class Arm:
              ) -> tuple[np.ndarray, np.ndarray]:
         return rc.hit_cylinder_axis(o, d, self.pivot, self.axis(t), self.radius, self.length)
 
+    def contains(self, p: np.ndarray, t: np.ndarray, pad: float) -> np.ndarray:
+        """Whether points p (n, 3) lie within ``pad`` of the arm at times t."""
+        axis = self.axis(t)
+        w = p - self.pivot
+        s = np.clip(np.sum(w * axis, axis=1), 0.0, self.length)
+        return np.linalg.norm(w - s[:, None] * axis, axis=1) <= self.radius + pad
+
 
 def cast_dynamic(o: np.ndarray, d: np.ndarray, t: np.ndarray, bodies: list[Mover | Arm],
                  bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -15,14 +15,16 @@ profile scanners            1-3, in one of four layouts: *butterfly* (two planes
                             tilted 20-45 deg, the way spinning Velodyne/Ouster heads are
                             racked on mapping rigs), *perpendicular + oblique*
 mounting height             1.8-3.2 m above the road, at least 0.25 m above the roof
-lever arms                  forward -1.8..+0.4 m, sideways +-0.3-0.8 m (pairs), from the
-                            trajectory's reference point (an IMU on the roof, 1.6-2.3 m up)
+lever arms                  on a rack at the back of the roof (from 0.2 m behind to 0.8 m
+                            ahead of the rear bumper; a tilted head also at the front),
+                            sideways +-0.3-0.8 m (pairs), from the trajectory's reference
+                            point (an IMU on the roof, 1.6-2.3 m up)
 mirror rate                 50-250 Hz per scanner (lines per second)
 pulse rate                  100 kHz - 1 MHz per scanner (before the size conditioning below)
 range noise                 2-10 mm (1 sigma, along the beam)
 blind zone / max range      1.5-3.0 m / 100-250 m
 vehicle                     4.4-6.0 m long, 1.75-2.1 m wide, roof 1.5-2.2 m; the body
-                            blocks the beams that meet it
+                            (lower body and a shorter cabin) blocks the beams that meet it
 road                        half width 3.5-9 m, crown 0-12 cm, grade -4..+4 %, texture
                             1-5 mm RMS, raised manhole lids 0.5-3 cm, curbs 8-20 cm (or
                             none), sidewalks 1.5-5 m
@@ -141,12 +143,34 @@ class System:
     tailpipe_left: float  # the exhaust leaves the rear bumper this far left of centre
     intensity_gain: float = 1.0
 
-    def body_box(self) -> tuple[np.ndarray, np.ndarray]:
-        """The vehicle body (vehicle frame, relative to the reference point): lo, hi corners."""
-        h = self.reference_height
-        lo = np.array([-self.vehicle_length / 2, -self.vehicle_width / 2, -h + 0.15])
-        hi = np.array([self.vehicle_length / 2, self.vehicle_width / 2, self.roof_height - h])
-        return lo, hi
+    def body_boxes(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The vehicle's body (vehicle frame, relative to the reference point) as lo, hi
+        corners of two boxes: the lower body over the whole length, up to 1 m above the road,
+        and the cabin up to the roof, shorter at both ends."""
+        h, half = self.reference_height, self.vehicle_length / 2
+        w = self.vehicle_width / 2
+        lower = (np.array([-half, -w, -h + 0.15]), np.array([half, w, 1.0 - h]))
+        cabin = (np.array([-0.6 * half, -w + 0.1, 1.0 - h]),
+                 np.array([0.7 * half, w - 0.1, self.roof_height - h]))
+        return [lower, cabin]
+
+    def blocks(self, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Whether the body stops beams leaving ``origin`` (vehicle frame) along directions."""
+        o = np.broadcast_to(origin, directions.shape)
+        out = np.zeros(len(directions), dtype=bool)
+        for lo, hi in self.body_boxes():
+            t_in, t_out = _box_span(o, directions, lo, hi)
+            out |= (t_in <= t_out) & (t_out > 1e-6)
+        return out
+
+
+def _box_span(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - o) / d, (hi - o) / d
+    near = np.where(np.isnan(t1), -np.inf, np.fmin(t1, t2)).max(axis=1)
+    far = np.where(np.isnan(t1), np.inf, np.fmax(t1, t2)).min(axis=1)
+    return near, far
 
 
 #: The LYNX-like pair the transient detector's default lever arms describe (scan planes
@@ -318,24 +342,28 @@ def draw_system(rng: np.random.Generator) -> System:
     def up() -> float:
         return rng.uniform(max(1.8, roof + 0.25), 3.2) - ref_h
 
+    def rear() -> float:  # on a rack at the back of the roof, over the rear bumper
+        return rng.uniform(-length / 2 - 0.2, -length / 2 + 0.8)
+
     specs: list[tuple[tuple[float, float, float], float, float]] = []  # offset, yaw, pitch
     if layout.startswith("butterfly"):
         yaw = rng.uniform(30.0, 60.0)
         toe = 1.0 if rng.random() < 0.5 else -1.0  # planes opening forward or backward
-        fwd, side, z = rng.uniform(-1.8, 0.4), rng.uniform(0.3, 0.8), up()
+        fwd, side, z = rear(), rng.uniform(0.3, 0.8), up()
         pitch = rng.uniform(-10.0, 10.0)
         for s in (1.0, -1.0):
             specs.append(((fwd, s * side, z), s * toe * yaw + rng.normal(0, 1.5), pitch))
         if layout == "butterfly+tilted":
             tilt = rng.uniform(20.0, 45.0) * (1.0 if rng.random() < 0.5 else -1.0)
-            specs.append(((rng.uniform(-1.8, 0.4), rng.uniform(-0.2, 0.2), up()),
-                          rng.uniform(-5.0, 5.0), tilt))
+            # the tilted head sits on the rack or looks ahead from the front of the roof
+            fwd3 = rear() if rng.random() < 0.6 else rng.uniform(length / 2 - 0.8, length / 2)
+            specs.append(((fwd3, rng.uniform(-0.2, 0.2), up()), rng.uniform(-5.0, 5.0), tilt))
     else:
-        specs.append(((rng.uniform(-1.8, 0.4), rng.uniform(-0.2, 0.2), up()),
+        specs.append(((rear(), rng.uniform(-0.2, 0.2), up()),
                       rng.uniform(-5.0, 5.0), rng.uniform(-25.0, 25.0)))
         if layout == "perpendicular+oblique":
             s = 1.0 if rng.random() < 0.5 else -1.0
-            specs.append(((rng.uniform(-1.8, 0.4), s * rng.uniform(0.3, 0.8), up()),
+            specs.append(((rear(), s * rng.uniform(0.3, 0.8), up()),
                           s * rng.uniform(30.0, 60.0), rng.uniform(-10.0, 10.0)))
     scanners = []
     for i, (offset, yaw, pitch) in enumerate(specs):
@@ -604,8 +632,10 @@ def condition_size(system: System, drive: DrivePlan, moving: np.ndarray, standin
                          for s in scanners)
         length = solve(scanners, drive)
     plan = drive
-    while length < lo_l and len(plan.passes) > 1:
-        # too dense even at the lowest rates: the cut comes from fewer passes
+    while (length < lo_l and len(plan.passes) > 1
+           and len(plan.passes) > len({s.pass_index for s in plan.stops})):
+        # too dense even at the lowest rates: the cut comes from fewer passes (never one with
+        # a stop: the standstill is part of the condition)
         plan = _drop_a_pass(plan)
         length = solve(scanners, plan)
     if not lo_l <= length <= hi_l:
@@ -623,13 +653,12 @@ def condition_size(system: System, drive: DrivePlan, moving: np.ndarray, standin
 
 def _drop_a_pass(plan: DrivePlan) -> DrivePlan:
     keep_stop = {s.pass_index for s in plan.stops}
-    free = [i for i in range(len(plan.passes)) if i not in keep_stop]  # the last without a stop
-    drop = free[-1] if free else len(plan.passes) - 1
+    drop = [i for i in range(len(plan.passes)) if i not in keep_stop][-1]
     passes = tuple(p for i, p in enumerate(plan.passes) if i != drop)
-    stops = tuple(replace(s, pass_index=s.pass_index - (s.pass_index > drop))
-                  for s in plan.stops if s.pass_index != drop)
+    stops = tuple(replace(s, pass_index=s.pass_index - (s.pass_index > drop)) for s in plan.stops)
     gaps = plan.gaps[:len(passes) - 1]
     return replace(plan, passes=passes, stops=stops, gaps=gaps)
+
 
 #: The paper's three clouds (section 4, Table 1) as presets of the family.
 #: A: cold and wet, slow with a standstill, two large clumps (exhaust condensation where the

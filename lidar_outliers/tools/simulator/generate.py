@@ -24,7 +24,7 @@ from lidar_outliers.tools.simulator.family import (
     draw_system,
     stream,
 )
-from lidar_outliers.tools.simulator.outliers import draw_plan, make_returns
+from lidar_outliers.tools.simulator.outliers import OutlierPlan, draw_plan, make_returns
 from lidar_outliers.tools.simulator.survey import (
     Motion,
     build_motion,
@@ -51,7 +51,8 @@ class SimulatedCloud:
     the vehicle's reference point at 100 Hz. Truth: is_outlier (n,) bool; kind (n,) uint8 codes
     of ``KIND_NAMES``. Facts the delivery would not carry: ``system`` (the scanners' true
     mounting, rates, noise), ``street`` and ``frame`` (the scene, local -> world), ``motion``
-    (poses in the street frame) and ``facts`` (all of it as JSON-able data).
+    (poses in the street frame), ``plan`` (the outlier sources: puddles, clumps, mist, moving
+    bodies, in the street frame) and ``facts`` (all of it as JSON-able data).
     """
 
     xyz: np.ndarray
@@ -71,6 +72,7 @@ class SimulatedCloud:
     street: Street
     frame: Frame
     motion: Motion
+    plan: OutlierPlan
     strip: float
     facts: dict[str, Any]
 
@@ -126,9 +128,10 @@ def simulate(condition: str, seed: int, scale: float = 1.0) -> SimulatedCloud:
     drive = draw_drive(stream(seed, 4, tag), cond, street)
     drawn_system, drawn_drive = system, drive
     ahead = None
-    for _ in range(3):  # the cut's shares depend on the passes and strip it settles on
-        moving, standing, ahead = point_fractions(system, street, drive, scale, stream(seed, 5),
-                                                  ahead)
+    for _ in range(3):  # the cut's shares depend on the strip and stops it settles on
+        drawn_drive = replace(drawn_drive, strip=drive.strip, footprint=drive.footprint)
+        moving, standing, ahead = point_fractions(system, street, drawn_drive, scale,
+                                                  stream(seed, 5), ahead)
         # the vehicle stops where its scanners' returns, weighted by rate, fall on the place
         hz = np.array([sc.pulse_hz * m for sc, m in zip(system.scanners, moving, strict=True)])
         footprint = float(np.dot(hz, ahead) / hz.sum())
@@ -141,7 +144,7 @@ def simulate(condition: str, seed: int, scale: float = 1.0) -> SimulatedCloud:
     survey = run_survey(system, street, motion, plan.bodies, extent, stream(seed, 7, tag))
     strip = cut_to_count(survey, cond.points * scale * (1 - cond.share), strip, extent)
     rng = stream(seed, 8, tag)
-    rec, wanted = make_returns(survey, plan, cond, system, street, motion, strip, rng)
+    rec, wanted, plan = make_returns(survey, plan, cond, system, street, motion, strip, rng)
 
     ray = rec["ray"]
     n = len(ray)
@@ -188,6 +191,7 @@ def simulate(condition: str, seed: int, scale: float = 1.0) -> SimulatedCloud:
         street=street,
         frame=frame,
         motion=motion,
+        plan=plan,
         strip=strip,
         facts={},
     )

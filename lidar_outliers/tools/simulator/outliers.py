@@ -31,7 +31,7 @@ that can go anywhere along a beam make up the rest, so the share is met exactly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -42,6 +42,7 @@ from lidar_outliers.tools.simulator.family import (
     ARM,
     ARM_PAINT,
     ASPHALT,
+    CAR,
     EXHAUST,
     FOG,
     GLASS,
@@ -65,7 +66,6 @@ from lidar_outliers.tools.simulator.survey import (
     Motion,
     cast_static,
     room_boxes,
-    scanner_rays,
     segment_bounds,
 )
 
@@ -75,7 +75,12 @@ from lidar_outliers.tools.simulator.survey import (
 @dataclass(frozen=True, eq=False)
 class Clump:
     """An ellipsoid of droplets or dust: centre at t_ref (street frame, or the vehicle frame
-    when ``attached``), semi-axes, drift (m/s) and the time it exists."""
+    when ``attached``), semi-axes, drift (m/s) and the time it exists.
+
+    A clump drawn before the survey has no centre yet (NaN): :func:`_place_clumps` puts it
+    where a beam of the survey crossed the air above the road at a drawn height; its life is
+    then ``life`` seconds around that beam's time (a standstill plume: the stop's interval).
+    """
 
     centre: np.ndarray
     semi: np.ndarray
@@ -84,6 +89,8 @@ class Clump:
     life: tuple[float, float]
     attached: bool = False
     moving_only: bool = False  # attached clumps that form only while driving
+    standstill: bool = False  # fed by the tailpipe during the stop ``life``
+    height: tuple[float, float] = (0.1, 1.2)  # of its centre above the road
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,7 +110,10 @@ class OutlierPlan:
     """Everything drawn about one cloud's outliers (street frame, strip [0, L])."""
 
     mix: dict[int, float]
-    puddles: np.ndarray  # (q, 4): cx, cy, semi x, semi y
+    puddles: np.ndarray  # (q, 4): cx, cy, semi x, semi y (placed after the survey)
+    puddle_candidates: np.ndarray  # (m, 4) places the puddles are chosen from
+    n_puddles: int
+    puddle_mist: list[tuple[float, tuple[float, float]]]  # mist over the first puddles
     bodies: list[Mover | Arm]
     clumps: list[Clump]
     patches: list[Patch]
@@ -142,46 +152,56 @@ def draw_plan(rng: np.random.Generator, cond: Condition, system: System, street:
     hw = street.half_width
     in_strip = _in_strip_samples(motion, strip)
 
-    puddles = np.zeros((0, 4))
+    # standing water: candidate places (most along the curbs, on the asphalt of the cut, not
+    # under a parked car); where they go is settled once the survey shows which can mirror
+    candidates = np.zeros((0, 4))
+    n_puddles = 0
     if cond.wet:
-        n = int(rng.integers(2, 7))
+        n_puddles = int(rng.integers(2, 7))
         rows = []
-        for i in range(n):
-            big = cond.name == "A" and i == 0
+        for i in range(24):
+            big = cond.name == "A" and i % 3 == 0
             semi = ([rng.uniform(1.5, 3.0), rng.uniform(0.8, 1.5)] if big
                     else [rng.uniform(0.5, 2.5), rng.uniform(0.3, 1.2)])
-            if rng.random() < 0.6:  # water gathers along the curbs
-                y = rng.choice([-1.0, 1.0]) * (hw - rng.uniform(0.2, 1.2))
-            else:
-                y = rng.uniform(-0.8, 0.8) * hw
-            rows.append([rng.uniform(0.0, strip), y, *semi])
-        puddles = np.array(rows)
+            for _ in range(20):
+                if rng.random() < 0.6:  # water gathers along the curbs
+                    y = rng.choice([-1.0, 1.0]) * (hw - rng.uniform(0.2, 1.2))
+                else:
+                    y = rng.uniform(-0.8, 0.8) * hw
+                y = float(np.clip(y, max(-hw, street.crop_y[0]) + 0.2,
+                                  min(hw, street.crop_y[1]) - 0.2))
+                x = rng.uniform(0.0, strip)
+                if not _under_a_car(street, x, y):
+                    break
+            rows.append([x, y, *semi])
+        candidates = np.array(rows)
 
     bodies: list[Mover | Arm] = []
     if ARM in mix:
-        bodies.append(_draw_arm(rng, system, street, motion, strip))
+        bodies.append(_draw_arm(rng, system, street, motion, in_strip, strip))
     if MOVING in mix:
-        for _ in range(int(rng.integers(1, 4))):
-            bodies.append(_draw_mover(rng, system, street, motion, in_strip))
+        for i in range(int(rng.integers(1, 4))):
+            # the first one is on the road, in plain view
+            bodies.append(_draw_mover(rng, system, street, motion, in_strip, strip,
+                                      on_road=i == 0))
     if AIRBORNE in mix:
         for _ in range(int(rng.integers(1, 4))):
-            bodies.append(_draw_bird(rng, street, motion, in_strip, strip))
+            bodies.append(_draw_bird(rng, system, street, motion, in_strip, strip))
 
     clumps: list[Clump] = []
     patches: list[Patch] = []
     if EXHAUST in mix:
+        nan3 = np.full(3, np.nan)
         for ta, tb in motion.stops:
-            clumps.append(_standstill_plume(rng, system, street, motion, ta, tb, strip))
+            semi = np.array([rng.uniform(0.4, 1.2), rng.uniform(0.3, 0.9), rng.uniform(0.25, 0.6)])
+            clumps.append(Clump(nan3, semi, np.zeros(3), np.nan, (ta, tb), standstill=True,
+                                height=(0.3, 1.3)))
         n_clumps = int(rng.integers(2, 7) if cond.name == "A" else rng.integers(8, 21))
         n_clumps = max(2, round(n_clumps * max(strip, 5.0) / 30.0))
         for _ in range(n_clumps):
-            k = int(rng.choice(in_strip))
-            c = np.array([rng.uniform(0, strip), rng.uniform(*street.crop_y), 0.0])
-            c[1] = np.clip(c[1], -hw, hw)
-            c[2] = float(street.road_z(c[:1], c[1:2])[0]) + rng.uniform(0.1, 1.2)
             wind = rng.uniform(0, 1.5) * _unit2(rng)
-            life = (motion.t[k] - rng.uniform(1, 5), motion.t[k] + rng.uniform(1, 5))
-            clumps.append(Clump(c, rng.uniform(0.1, 0.4, 3), wind, float(motion.t[k]), life))
+            life = (-rng.uniform(1, 5), rng.uniform(1, 5))
+            clumps.append(Clump(nan3, rng.uniform(0.1, 0.4, 3), wind, np.nan, life))
         if cond.cold and rng.random() < 0.5:
             offset = np.array([-system.vehicle_length / 2 - rng.uniform(0.6, 2.0),
                                system.tailpipe_left,
@@ -189,11 +209,11 @@ def draw_plan(rng: np.random.Generator, cond: Condition, system: System, street:
             clumps.append(Clump(offset, np.array([rng.uniform(0.4, 1.5), 0.4, 0.3]),
                                 np.zeros(3), 0.0, (-np.inf, np.inf), attached=True,
                                 moving_only=True))
-    if MIST in mix:
-        for cx, cy, ax, ay in puddles[: max(1, len(puddles) // 2)]:
-            patches.append(Patch(np.array([cx, cy]), np.array([ax, ay]) * rng.uniform(1.0, 1.5),
-                                 (rng.uniform(0.02, 0.08), rng.uniform(0.2, 1.0)),
-                                 (-np.inf, np.inf)))
+    puddle_mist = []
+    if MIST in mix:  # mist over some of the puddles: (enlargement, band)
+        puddle_mist = [(float(rng.uniform(1.0, 1.5)),
+                        (float(rng.uniform(0.02, 0.08)), float(rng.uniform(0.2, 1.0))))
+                       for _ in range(max(1, n_puddles // 2))]
         if rng.random() < 0.5:  # spray behind the rear wheels while driving
             band = (rng.uniform(0.02, 0.05), rng.uniform(0.3, 0.8))
             for s in (1.0, -1.0):
@@ -202,13 +222,15 @@ def draw_plan(rng: np.random.Generator, cond: Condition, system: System, street:
                               s * system.vehicle_width / 2]),
                     np.array([rng.uniform(0.5, 1.5), rng.uniform(0.3, 0.6)]), band,
                     (-np.inf, np.inf), attached=True))
+        road = (max(-hw, street.crop_y[0]), min(hw, street.crop_y[1]))
         for _ in range(int(rng.integers(0, 4))):
-            patches.append(Patch(np.array([rng.uniform(0, strip), rng.uniform(-0.8, 0.8) * hw]),
+            patches.append(Patch(np.array([rng.uniform(0, strip), rng.uniform(*road)]),
                                  np.array([rng.uniform(0.5, 2.5), rng.uniform(0.5, 2.0)]),
                                  (rng.uniform(0.02, 0.1), rng.uniform(0.2, 1.0)),
                                  (-np.inf, np.inf)))
     return OutlierPlan(
-        mix=mix, puddles=puddles, bodies=bodies, clumps=clumps, patches=patches,
+        mix=mix, puddles=np.zeros((0, 4)), puddle_candidates=candidates, n_puddles=n_puddles,
+        puddle_mist=puddle_mist, bodies=bodies, clumps=clumps, patches=patches,
         behind_droplets=float(rng.uniform(0.3, 0.9)), water_direct=float(rng.uniform(0.2, 0.7)),
         glass_through=float(rng.uniform(0.4, 0.8)), near_band=(0.015, 0.06),
         isolated_band=(0.2, 1.5), rain_range=float(rng.uniform(3.0, 10.0)),
@@ -232,44 +254,81 @@ def _path_extent(motion: Motion, side: int, system: System) -> float:
 
 
 def _draw_arm(rng: np.random.Generator, system: System, street: Street, motion: Motion,
-              strip: float) -> Arm:
+              in_strip: np.ndarray, strip: float) -> Arm:
+    """A barrier arm on a post at the road edge, long enough to cross into the cut and short
+    enough to clear the survey vehicle's path; where a scan plane sweeps it inside the strip."""
     hw = street.half_width
     best = None
     for side in ((1, -1) if rng.random() < 0.5 else (-1, 1)):
-        length = hw + 0.3 - _path_extent(motion, side, system)
-        if best is None or length > best[1]:
-            best = (side, length)
-        if length >= 1.5:
-            break
-    side, length = best[0], float(np.clip(min(best[1], rng.uniform(3.0, 5.0)), 1.0, 5.0))
-    x = rng.uniform(0.1, 0.9) * strip
-    pivot = np.array([x, side * (hw + 0.3), 0.0])
-    pivot[2] = float(street.sidewalk_z(pivot[:1])[0]) + rng.uniform(0.8, 1.1)
+        length = float(np.clip(min(hw + 0.3 - _path_extent(motion, side, system),
+                                   rng.uniform(3.0, 5.0)), 1.0, 5.0))
+        post, tip = side * (hw + 0.3), side * (hw + 0.3 - length)
+        lo, hi = min(post, tip), max(post, tip)
+        overlap = min(hi, street.crop_y[1]) - max(lo, street.crop_y[0])
+        if best is None or overlap > best[2]:
+            best = (side, length, overlap, 0.5 * (max(lo, street.crop_y[0])
+                                                  + min(hi, street.crop_y[1])))
+    side, length, _, y_mid = best
+    z = float(street.sidewalk_z(np.array([strip / 2]))[0]) + rng.uniform(0.8, 1.1)
+    t_m, x = _in_view(rng, system, motion, in_strip, y_mid, z, strip)
     period = rng.uniform(6.0, 14.0)
-    return Arm(pivot, side, length, float(rng.uniform(0.035, 0.06)), float(period),
-               float(rng.uniform(0, period)))
+    # the arm comes down about when the plane sweeps it
+    phase = t_m - rng.uniform(-0.15, 0.15) * period
+    return Arm(np.array([x, side * (hw + 0.3), z]), side, length,
+               float(rng.uniform(0.035, 0.06)), float(period), float(phase))
+
+
+def _in_view(rng: np.random.Generator, system: System, motion: Motion, in_strip: np.ndarray,
+             y: float, z: float, strip: float) -> tuple[float, float]:
+    """A moment of the drive and the x where a scan plane then crosses the line (y, z) inside
+    the strip, within 25 m of its scanner: a body placed there is seen. Falls back to the
+    middle of the strip at a moment over it."""
+    pos, f, left, up = motion.at(motion.t)
+    found_t, found_x = [], []
+    for sc in system.scanners:
+        n_v, _, _ = sc.plane_basis()
+        n = n_v[0] * f + n_v[1] * left + n_v[2] * up
+        o = pos + sc.offset[0] * f + sc.offset[1] * left + sc.offset[2] * up
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = o[:, 0] - (n[:, 1] * (y - o[:, 1]) + n[:, 2] * (z - o[:, 2])) / n[:, 0]
+        near = np.hypot(x - o[:, 0], y - o[:, 1]) <= 25.0
+        ok = (np.abs(n[:, 0]) > 0.2) & (x >= 0.0) & (x <= strip) & near
+        found_t.append(motion.t[ok])
+        found_x.append(x[ok])
+    t_all, x_all = np.concatenate(found_t), np.concatenate(found_x)
+    if not len(t_all):
+        return float(motion.t[int(rng.choice(in_strip))]), strip / 2
+    k = int(rng.integers(0, len(t_all)))
+    return float(t_all[k]), float(x_all[k])
+
+
+def _under_a_car(street: Street, x: float, y: float) -> bool:
+    cars = street.boxes[street.box_mat == CAR]
+    return bool(np.any((cars[:, 0] <= x) & (x <= cars[:, 3]) & (cars[:, 1] <= y)
+                       & (y <= cars[:, 4])))
 
 
 def _draw_mover(rng: np.random.Generator, system: System, street: Street, motion: Motion,
-                in_strip: np.ndarray) -> Mover:
-    """A car, cyclist or pedestrian that is near the vehicle at a moment over the strip."""
+                in_strip: np.ndarray, strip: float, on_road: bool) -> Mover:
+    """A car, cyclist or pedestrian crossing a scan plane inside the cut at a moment over the
+    strip, clear of the survey vehicle's path (``on_road``: not on a sidewalk)."""
     hw = street.half_width
-    k = int(rng.choice(in_strip))
-    t_m = float(motion.t[k])
-    xv, yv = motion.pos[k, 0], motion.pos[k, 1]
     lo_y, hi_y = street.crop_y
-    label = str(rng.choice(["car", "cyclist", "pedestrian"], p=[0.45, 0.2, 0.35]))
+    lanes = motion.pos[in_strip, 1]
     clear = system.vehicle_width / 2 + 1.3
-    if label in ("car", "cyclist"):
-        half = 1.0 if label == "car" else 0.4
-        room = [y for y in np.linspace(-hw + half + 0.2, hw - half - 0.2, 41)
-                if abs(y - yv) >= clear + half and lo_y + 0.5 <= y <= hi_y - 0.5]
-        if not room:
-            label = "pedestrian"
+
+    def free(ys: np.ndarray, half: float) -> list[float]:
+        return [float(y) for y in ys if np.min(np.abs(lanes - y)) >= clear + half
+                and lo_y + 0.5 <= y <= hi_y - 0.5]
+
+    label = str(rng.choice(["car", "cyclist", "pedestrian"], p=[0.45, 0.2, 0.35]))
+    room = free(np.linspace(-hw + 1.2, hw - 1.2, 41), 1.0 if label == "car" else 0.4)
+    if label != "pedestrian" and not room:
+        label = "pedestrian"
     if label == "car":
         y = float(rng.choice(room))
         length, width, height = rng.uniform(3.8, 5.2), rng.uniform(1.7, 2.0), rng.uniform(1.4, 1.9)
-        x = xv + rng.uniform(-6, 6)
+        t_m, x = _in_view(rng, system, motion, in_strip, y, 1.0, strip)
         z = float(street.road_z(np.array([x]), np.array([y]))[0])
         vx = rng.choice([-1.0, 1.0]) * rng.uniform(3.0, 15.0)
         boxes = np.array([
@@ -279,71 +338,36 @@ def _draw_mover(rng: np.random.Generator, system: System, street: Street, motion
         return Mover(MOVING, "car", np.array([vx, 0.0, street.grade * vx]), t_m, boxes=boxes)
     if label == "cyclist":
         y = float(rng.choice(room))
-        x = xv + rng.uniform(-6, 6)
+        t_m, x = _in_view(rng, system, motion, in_strip, y, 1.0, strip)
         z = float(street.road_z(np.array([x]), np.array([y]))[0])
         vx = rng.choice([-1.0, 1.0]) * rng.uniform(3.0, 7.0)
         boxes = np.array([[x - 0.9, y - 0.3, z, x + 0.9, y + 0.3, z + 1.7]])
         return Mover(MOVING, "cyclist", np.array([vx, 0.0, street.grade * vx]), t_m, boxes=boxes)
-    # a pedestrian crossing behind the vehicle, or walking along the cut
-    heading = float(np.cos(motion.heading[k]))
-    speed = rng.uniform(0.8, 1.8)
-    radius, height = rng.uniform(0.2, 0.3), rng.uniform(1.5, 1.9)
-    if rng.random() < 0.5:
-        x = xv - np.sign(heading or 1.0) * rng.uniform(3.0, 10.0)
-        y = np.clip(yv + rng.uniform(-4, 4), lo_y + 0.5, hi_y - 0.5)
-        velocity = np.array([0.0, rng.choice([-1.0, 1.0]) * speed, 0.0])
-    else:
-        choices = [y for y in np.linspace(lo_y + 0.4, hi_y - 0.4, 41) if abs(y - yv) >= clear]
-        y = float(rng.choice(choices)) if choices else float(hi_y - 0.4)
-        x = xv + rng.uniform(-8, 8)
-        velocity = np.array([rng.choice([-1.0, 1.0]) * speed, 0.0, 0.0])
+    # a pedestrian crossing the street or walking along it
+    ys = np.linspace(lo_y + 0.4, hi_y - 0.4, 61)
+    if on_road:
+        ys = ys[np.abs(ys) <= hw - 0.4]
+    clearance = np.min(np.abs(lanes[:, None] - ys), 0) if len(ys) else np.zeros(0)
+    walkway = free(ys, 0.3) or ([float(y) for y in ys[np.argsort(-clearance)[:5]]]
+                                if len(ys) else [float(hi_y - 0.4)])
+    y = float(rng.choice(walkway))
+    t_m, x = _in_view(rng, system, motion, in_strip, y, 1.0, strip)
+    speed = rng.uniform(0.8, 1.8) * rng.choice([-1.0, 1.0])
+    velocity = np.array([0.0, speed, 0.0]) if rng.random() < 0.5 else np.array([speed, 0, 0])
     z = float(street.ground_z(np.array([x]), np.array([y]))[0])
     return Mover(MOVING, "pedestrian", velocity, t_m,
-                 cylinder=np.array([x, y, radius, z, z + height]))
+                 cylinder=np.array([x, y, rng.uniform(0.2, 0.3), z, z + rng.uniform(1.5, 1.9)]))
 
 
-def _draw_bird(rng: np.random.Generator, street: Street, motion: Motion, in_strip: np.ndarray,
-               strip: float) -> Mover:
-    k = int(rng.choice(in_strip))
-    c = np.array([rng.uniform(0, strip), rng.uniform(*street.crop_y), 0.0])
-    c[2] = float(street.road_z(c[:1], np.array([0.0]))[0]) + rng.uniform(2.5, 8.0)
+def _draw_bird(rng: np.random.Generator, system: System, street: Street, motion: Motion,
+               in_strip: np.ndarray, strip: float) -> Mover:
+    """A bird flying through a scan plane over the cut, 2.5-8 m above the road."""
+    y = float(rng.uniform(*street.crop_y))
+    z = float(street.road_z(np.array([strip / 2]), np.array([0.0]))[0]) + rng.uniform(2.5, 8.0)
+    t_m, x = _in_view(rng, system, motion, in_strip, y, z, strip)
     velocity = rng.uniform(4.0, 14.0) * _unit2(rng)
     semi = np.array([rng.uniform(0.08, 0.25), rng.uniform(0.08, 0.25), rng.uniform(0.05, 0.12)])
-    return Mover(AIRBORNE, "bird", velocity, float(motion.t[k]),
-                 ellipsoid=np.concatenate([c, semi]))
-
-
-def _standstill_plume(rng: np.random.Generator, system: System, street: Street, motion: Motion,
-                      ta: float, tb: float, strip: float) -> Clump:
-    """A clump fed by the tailpipe while the vehicle stands, centred on one scanner's plane
-    (the scanners keep slicing the same plane), within reach of its beam, inside the cut where
-    one is possible."""
-    t_mid = np.array([0.5 * (ta + tb)])
-    pos, f, left, up = motion.at(t_mid)
-    tail = (pos[0] + (-system.vehicle_length / 2 - 0.1) * f[0] + system.tailpipe_left * left[0]
-            + (0.3 - system.reference_height) * up[0])
-    cands = []
-    for sc in system.scanners:
-        phi_grid = np.linspace(-np.pi, np.pi, 721)
-        # fire the plane once (times at which the mirror points at each phi)
-        period = 1.0 / sc.scan_hz
-        t = t_mid[0] + np.mod((phi_grid - sc.phase) * sc.spin / (2 * np.pi), 1.0) * period
-        t = np.minimum(t, tb)
-        o, d, _, blocked = scanner_rays(motion, system, sc, t)
-        for rho in np.arange(system.min_range + 0.4, system.min_range + 4.0, 0.2):
-            q = o + rho * d
-            h = q[:, 2] - street.road_z(q[:, 0], q[:, 1])
-            ok = ~blocked & (h >= 0.3) & (h <= 1.3)
-            inside = ok & (q[:, 0] >= 0) & (q[:, 0] <= strip) & (q[:, 1] >= street.crop_y[0]) \
-                & (q[:, 1] <= street.crop_y[1])
-            for j in np.flatnonzero(ok):
-                cands.append((not inside[j], float(np.linalg.norm(q[j] - tail)), q[j]))
-    cands.sort(key=lambda c: (c[0], c[1]))
-    pick = cands[int(rng.integers(0, min(10, len(cands))))][2] if cands else tail
-    semi = np.array([rng.uniform(0.4, 1.2), rng.uniform(0.3, 0.9), rng.uniform(0.25, 0.6)])
-    semi[2] = min(semi[2], pick[2] - float(street.road_z(pick[:1], pick[1:2])[0]) - 0.05)
-    semi[2] = max(semi[2], 0.15)
-    return Clump(np.asarray(pick, dtype=float), semi, np.zeros(3), float(t_mid[0]), (ta, tb))
+    return Mover(AIRBORNE, "bird", velocity, t_m, ellipsoid=np.array([x, y, z, *semi]))
 
 
 # --------------------------------------------------------------------------- making them
@@ -377,11 +401,11 @@ class Records:
 
 def make_returns(s: dict[str, np.ndarray], plan: OutlierPlan, cond: Condition, system: System,
                  street: Street, motion: Motion, strip: float, rng: np.random.Generator
-                 ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+                 ) -> tuple[dict[str, np.ndarray], dict[str, int], OutlierPlan]:
     """Every return of the cloud from the survey's first hits ``s`` and the outlier plan.
 
-    Returns the records (arrays of :class:`Records`) and, per kind name, how many the mix
-    asked for before the geometry had its say.
+    Returns the records (arrays of :class:`Records`), per kind name how many the mix asked
+    for before the geometry had its say, and the plan with its puddles placed.
     """
     n = len(s["t"])
     real = np.isfinite(s["r"])
@@ -401,8 +425,11 @@ def make_returns(s: dict[str, np.ndarray], plan: OutlierPlan, cond: Condition, s
     base = real & ~present  # pulses whose return is the static street
 
     mat = s["mat"].copy()
+    p0 = s["o"] + np.where(real, s["r"], 0.0)[:, None] * s["d"]
+    asphalt = np.flatnonzero(base & (mat == ASPHALT))
+    plan = _place_puddles(plan, s, asphalt, p0, street, system, cut, rng)
+    plan = _place_clumps(plan, s, asphalt, street, system, motion, cut, rng)
     if len(plan.puddles):
-        p0 = s["o"] + np.where(real, s["r"], 0.0)[:, None] * s["d"]
         mat[base & (mat == ASPHALT) & _in_ellipses(p0[:, :2], plan.puddles)] = WET
 
     # windows: the street's mirror image behind the glass, the room behind it, or the pane
@@ -461,7 +488,87 @@ def make_returns(s: dict[str, np.ndarray], plan: OutlierPlan, cond: Condition, s
                     cut, recs, rng)
     out = recs.arrays()
     keep = ~((out["kind"] == SURFACE) & hidden[out["ray"]] & (out["mat"] != INTERIOR))
-    return {k: v[keep] for k, v in out.items()}, {KIND_NAMES[k]: v for k, v in want.items()}
+    return ({k: v[keep] for k, v in out.items()}, {KIND_NAMES[k]: v for k, v in want.items()},
+            plan)
+
+
+def _place_clumps(plan: OutlierPlan, s: dict[str, np.ndarray], asphalt: np.ndarray,
+                  street: Street, system: System, motion: Motion, cut: _Cut,
+                  rng: np.random.Generator) -> OutlierPlan:
+    """Centre each clump drawn without a place where a beam of the survey crossed the air
+    above the asphalt, inside the cut, at a height drawn in the clump's range: a clump there
+    is seen.
+
+    A drifting clump takes any such beam and lives its drawn seconds around it. A standstill
+    plume takes a beam fired during its stop (the planes stand still, so the plume lies in
+    them), among those crossing nearest the tailpipe.
+    """
+    clumps = []
+    for c in plan.clumps:
+        if c.attached or np.all(np.isfinite(c.centre)):
+            clumps.append(c)
+            continue
+        rows = asphalt
+        if c.standstill:
+            rows = rows[(s["t"][rows] >= c.life[0]) & (s["t"][rows] <= c.life[1])]
+        rows = rows[_choose(rng, len(rows), 2000)]
+        h = rng.uniform(*c.height, len(rows))
+        t_h, _ = rc.hit_road(s["o"][rows], s["d"][rows], street.half_width, street.crown,
+                             street.grade, lift=h)
+        ok = np.isfinite(t_h) & (t_h >= system.min_range + 0.2) & (t_h < s["r"][rows] - 0.1)
+        points = s["o"][rows] + np.where(ok, t_h, 0.0)[:, None] * s["d"][rows]
+        ok &= cut(points)
+        rows, points = rows[ok], points[ok]
+        if not len(rows):
+            continue  # the survey never looked at this part of the air: no clump
+        if c.standstill:
+            t_mid = np.array([0.5 * (c.life[0] + c.life[1])])
+            tail = motion.place(t_mid, np.array([-system.vehicle_length / 2 - 0.1,
+                                                 system.tailpipe_left,
+                                                 0.3 - system.reference_height]))[0]
+            near = np.argsort(np.linalg.norm(points - tail, axis=1))[:10]
+            k = int(near[rng.integers(0, len(near))])
+            life = c.life
+        else:
+            k = int(rng.integers(0, len(rows)))
+            life = (float(s["t"][rows[k]] + c.life[0]), float(s["t"][rows[k]] + c.life[1]))
+        centre = points[k]
+        semi = c.semi.copy()
+        semi[2] = float(np.clip(semi[2], 0.1, max(0.1, centre[2] - float(street.road_z(
+            centre[:1], centre[1:2])[0]) - 0.05)))  # the clump stays above the road
+        clumps.append(replace(c, centre=centre, semi=semi, t_ref=float(s["t"][rows[k]]),
+                              life=life))
+    return replace(plan, clumps=clumps)
+
+
+def _place_puddles(plan: OutlierPlan, s: dict[str, np.ndarray], asphalt: np.ndarray,
+                   p0: np.ndarray, street: Street, system: System, cut: _Cut,
+                   rng: np.random.Generator) -> OutlierPlan:
+    """Put the puddles where water can show a mirror image inside the cut.
+
+    A sample of the asphalt returns is reflected (:func:`_mirrors`); each candidate place is
+    scored by the reflections that land in the cut from within it. The best place takes the
+    first puddle (the large one of cloud A), the others are drawn among the places that score
+    at all (any where none does). Mist patches then cover the first puddles.
+    """
+    cand = plan.puddle_candidates
+    if not plan.n_puddles or not len(cand):
+        return plan
+    sample = asphalt[_choose(rng, len(asphalt), 20_000)]
+    good, *_ = _mirrors(s, sample, np.array([0.0, 0.0, 1.0]), street, system, cut, rng,
+                        min_drop=0.05)
+    xy = p0[good, :2]
+    score = np.array([int(_in_ellipses(xy, c[None, :]).sum()) for c in cand])
+    best = int(np.argmax(score))
+    rest = [i for i in np.flatnonzero(score > 0) if i != best] or [
+        i for i in range(len(cand)) if i != best]
+    others = [rest[i] for i in _choose(rng, len(rest), plan.n_puddles - 1)]
+    puddles = cand[[best, *others]]
+    patches = list(plan.patches)
+    for (grow, band), (cx, cy, ax, ay) in zip(plan.puddle_mist, puddles, strict=False):
+        patches.append(Patch(np.array([cx, cy]), np.array([ax, ay]) * grow, band,
+                             (-np.inf, np.inf)))
+    return replace(plan, puddles=puddles, patches=patches)
 
 
 class _Cut:
@@ -558,8 +665,12 @@ def _mirrors(s: dict[str, np.ndarray], rows: np.ndarray, normal: np.ndarray, str
     r1 = s["r"][rows]
     p1 = o + r1[:, None] * d
     d2 = rc.reflect(d, normal)
-    limit = system.max_range - r1
-    hits = cast_static(p1, d2, street, segment_bounds(p1, d2, limit), rng)
+    # the image lies along the outgoing beam, so only paths that end before the beam leaves
+    # the cut (and within range) can give one: the reflected beam is cast no further
+    _, leave, _ = rc.slab(o, d, np.array([cut.x[0], cut.y[0], -np.inf]),
+                          np.array([cut.x[1], cut.y[1], np.inf]))
+    limit = np.minimum(system.max_range, leave) - r1
+    hits = cast_static(p1, d2, street, segment_bounds(p1, d2, np.maximum(limit, 0.0)), rng)
     r2 = hits.t
     total = r1 + r2
     image = o + np.where(np.isfinite(total), total, 0.0)[:, None] * d

@@ -232,9 +232,7 @@ def scanner_rays(motion: Motion, system: System, sc: Scanner, t: np.ndarray
     phi = mirror_angle(sc, t)
     dv = sc.directions(phi)
     lever = np.array(sc.offset)
-    lo, hi = system.body_box()
-    t_in, t_out, _ = rc.slab(np.tile(lever, (len(t), 1)), dv, lo, hi)
-    blocked = (t_in <= t_out) & (t_out > rc.EPS)
+    blocked = system.blocks(lever, dv)
     pos, f, left, up = motion.at(t)
     o = pos + lever[0] * f + lever[1] * left + lever[2] * up
     d = dv[:, :1] * f + dv[:, 1:2] * left + dv[:, 2:3] * up
@@ -546,21 +544,27 @@ def point_fractions(system: System, street: Street, plan: DrivePlan, scale: floa
     places += [(plan.passes[s.pass_index], s.fraction * strip, j)
                for j, s in enumerate(plan.stops)]
     n_moving = 9 * len(plan.passes)
-    for p, x, stop in places:
-        for i, sc in enumerate(system.scanners):
-            back = plan.footprint if stop >= 0 else ahead[i]
-            o, d, free = _one_revolution(system, street, sc, x - p.direction * back, p.lane,
-                                         p.direction)
-            hits = cast_static(o, d, street, segment_bounds(o, d, np.full(len(o), 80.0)), rng)
-            q = o + np.where(np.isfinite(hits.t), hits.t, 0.0)[:, None] * d
-            ok = (free & (hits.t >= system.min_range) & (hits.t <= system.max_range)
-                  & (q[:, 1] >= street.crop_y[0]) & (q[:, 1] <= street.crop_y[1]))
-            if stop >= 0:
-                standing[i, stop] = np.mean(ok & (q[:, 0] >= 0) & (q[:, 0] <= strip))
-                continue
-            moving[i] += ok.mean() / n_moving
-            reach[i] += float(np.sum(q[ok, 0] - (x - p.direction * back)) * p.direction)
-            weight[i] += int(ok.sum())
+    # one cast for all revolutions: the street's objects are looped over once
+    stands = [(p, x - p.direction * (plan.footprint if stop >= 0 else ahead[i]), stop, i)
+              for p, x, stop in places for i in range(n_sc)]
+    rays = [(p, x, stop, i, *_one_revolution(system, street, system.scanners[i], x, p.lane,
+                                             p.direction)) for p, x, stop, i in stands]
+    o = np.concatenate([r[4] for r in rays])
+    d = np.concatenate([r[5] for r in rays])
+    hits = cast_static(o, d, street, segment_bounds(o, d, np.full(len(o), 80.0)), rng)
+    q_all = o + np.where(np.isfinite(hits.t), hits.t, 0.0)[:, None] * d
+    ok_all = ((hits.t >= system.min_range) & (hits.t <= system.max_range)
+              & (q_all[:, 1] >= street.crop_y[0]) & (q_all[:, 1] <= street.crop_y[1]))
+    size = len(rays[0][4])
+    for j, (p, x, stop, i, _, _, free) in enumerate(rays):
+        q = q_all[j * size:(j + 1) * size]
+        ok = free & ok_all[j * size:(j + 1) * size]
+        if stop >= 0:
+            standing[i, stop] = np.mean(ok & (q[:, 0] >= 0) & (q[:, 0] <= strip))
+            continue
+        moving[i] += ok.mean() / n_moving
+        reach[i] += float(np.sum(q[ok, 0] - x) * p.direction)
+        weight[i] += int(ok.sum())
     return np.maximum(moving, 1e-3), standing, reach / np.maximum(weight, 1)
 
 
@@ -569,14 +573,12 @@ def _one_revolution(system: System, street: Street, sc: Scanner, x: float, y: fl
     """Rays of one mirror revolution (512 pulses) from the vehicle standing level at (x, y):
     origins, directions and whether the body leaves the beam free."""
     phi = np.linspace(-np.pi, np.pi, 512, endpoint=False)
-    lo, hi = system.body_box()
     heading = np.array([0.0 if direction > 0 else np.pi])
     ground = np.array([x, y, float(street.road_z(np.array([x]), np.array([y]))[0])])
     f, left, up = vehicle_axes(np.zeros(1), np.zeros(1), heading)
     dv = sc.directions(phi)
     lever = np.array(sc.offset)
-    t_in, t_out, _ = rc.slab(np.tile(lever, (len(phi), 1)), dv, lo, hi)
-    free = ~((t_in <= t_out) & (t_out > rc.EPS))
+    free = ~system.blocks(lever, dv)
     ref = ground + system.reference_height * up[0]
     o = np.tile(ref + lever[0] * f[0] + lever[1] * left[0] + lever[2] * up[0], (len(phi), 1))
     d = np.outer(dv[:, 0], f[0]) + np.outer(dv[:, 1], left[0]) + np.outer(dv[:, 2], up[0])
