@@ -35,7 +35,7 @@ street furniture            facades (4-20 m high, gaps for alleys, punched windo
 drive                       1-3 passes in alternating directions, lanes and gentle curves
                             (+-0.5 m weave, a lane change in 25 % of passes), 0-20 m/s by
                             condition, 0-2 stops of 1-10 s, braking 0.8-2.5 m/s^2
-cut                         10-60 m of street; across it the asphalt only, to the facades,
+cut                         5-60 m of street; across it the asphalt only, to the facades,
                             or into the buildings, drawn per side
 frame                       a projected grid: azimuth 0-360 deg, easting 300-700 km,
                             northing 4000-6000 km, 0-500 m elevation; GPS seconds of week
@@ -44,13 +44,15 @@ frame                       a projected grid: azimuth 0-360 deg, easting 300-700
 Size conditioning: a condition is one of the paper's clouds, so the survey must give about its
 number of points (Table 1, times ``scale``). Points per second on the cut follow from the drawn
 scanners (a quick cast of one revolution each); the strip length is then solved for that count,
-and where it would leave 10-60 m the speeds and stops (then the pulse rates) are pulled back
-into range first. All draws come from independent streams, so the system, street and drive of a
-seed are the same at every ``scale`` and for every condition except the rate setting and drive.
+and where it would leave 5-60 m fewer passes, other speeds and stops, and only then other pulse
+rates bring it back (:func:`condition_size`). All draws come from independent streams, so the
+scanners' layout and mounting and the street of a seed are the same for every condition and
+``scale``; the rate setting and the drive are the condition's.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -85,7 +87,7 @@ GROUND = (ASPHALT, WET, CONCRETE)
 LAYOUTS = ("butterfly", "perpendicular", "butterfly+tilted", "perpendicular+oblique")
 LAYOUT_P = (0.4, 0.2, 0.25, 0.15)
 #: Strip length at scale 1 (m): the size conditioning keeps it in this range.
-STRIP_RANGE = (10.0, 60.0)
+STRIP_RANGE = (5.0, 60.0)
 #: Street built around the strip (m before 0 and after the longest strip).
 STREET_MARGIN = 70.0
 POSE_HZ = 200.0
@@ -585,19 +587,22 @@ def moving_seconds(drive: DrivePlan, length: float) -> float:
 
 
 def condition_size(system: System, drive: DrivePlan, moving: np.ndarray, standing: np.ndarray,
-                   target: int) -> tuple[System, DrivePlan]:
-    """Set the strip (then the pulse rates, then the drive) so the survey gives ``target``
-    points at scale 1.
+                   cond: Condition) -> tuple[System, DrivePlan]:
+    """Set the strip so the survey gives the condition's number of points at scale 1.
 
     ``moving`` (one per scanner): the share of its pulses that return from the cut while the
     vehicle drives over it; ``standing`` (scanners x stops): the share while it stands at each
     stop. Points = sum over scanners of pulse rate x (moving share x :func:`moving_seconds` +
     standing share x wait). The strip length solving that is kept when it lies in STRIP_RANGE.
-    Otherwise the pulse rates are scaled by one factor (within 100 kHz - 1 MHz) toward the
-    drawn strip length; then passes without a stop are left out; then the speeds and waits are
-    scaled (0.5-20 m/s, 1-10 s); the strip finally solves the count, clipped to its range.
+    Otherwise, each step only while the strip is still out of range and toward the drawn
+    strip length: passes without a stop are left out (too many points); speeds and waits are
+    scaled by one factor within the condition's speeds; the pulse rates by one factor within
+    100 kHz - 1 MHz; speeds and waits again within what vehicles do (0.5-20 m/s, 1-10 s). The
+    strip finally solves the count, clipped to its range. The system's rates thus change only
+    where its drive cannot give the paper's cloud size.
     """
     lo_l, hi_l = STRIP_RANGE
+    target = cond.points
 
     def points(scanners: tuple[Scanner, ...], plan: DrivePlan, length: float) -> float:
         t_move = moving_seconds(plan, length)
@@ -617,35 +622,45 @@ def condition_size(system: System, drive: DrivePlan, moving: np.ndarray, standin
             a, b = (mid, b) if points(scanners, plan, mid) < target else (a, mid)
         return float(np.sqrt(a * b))
 
-    def pulled(plan: DrivePlan, f: float) -> DrivePlan:
-        passes = tuple(replace(p, speed=float(np.clip(p.speed * f, 0.5, 20.0)))
+    def pulled(plan: DrivePlan, f: float, speeds: tuple[float, float]) -> DrivePlan:
+        lo_v, hi_v = min(speeds[0], *(p.speed for p in plan.passes)), max(
+            speeds[1], *(p.speed for p in plan.passes))
+        passes = tuple(replace(p, speed=float(np.clip(p.speed * f, lo_v, hi_v)))
                        for p in plan.passes)
         stops = tuple(replace(s, seconds=float(np.clip(s.seconds / f, 1.0, 10.0)))
                       for s in plan.stops)
         return replace(plan, passes=passes, stops=stops)
 
-    scanners = system.scanners
-    length = solve(scanners, drive)
-    if not lo_l <= length <= hi_l:
-        factor = target / points(scanners, drive, drive.strip)
-        scanners = tuple(replace(s, pulse_hz=float(np.clip(s.pulse_hz * factor, 1e5, 1e6)))
-                         for s in scanners)
-        length = solve(scanners, drive)
-    plan = drive
-    while (length < lo_l and len(plan.passes) > 1
-           and len(plan.passes) > len({s.pass_index for s in plan.stops})):
-        # too dense even at the lowest rates: the cut comes from fewer passes (never one with
-        # a stop: the standstill is part of the condition)
-        plan = _drop_a_pass(plan)
-        length = solve(scanners, plan)
-    if not lo_l <= length <= hi_l:
-        # a larger f drives faster and waits less: a longer strip for the same count
+    def bisect(make: Callable[[float], tuple[tuple[Scanner, ...], DrivePlan]]
+               ) -> tuple[tuple[Scanner, ...], DrivePlan]:
+        """``make(f)`` whose strip meets the drawn one (a larger f gives fewer points, so a
+        longer strip for the same count)."""
         a, b = np.log(1 / 40), np.log(40)
         for _ in range(40):
             mid = 0.5 * (a + b)
-            shorter = solve(scanners, pulled(plan, float(np.exp(mid)))) < drive.strip
-            a, b = (mid, b) if shorter else (a, mid)
-        plan = pulled(plan, float(np.exp(0.5 * (a + b))))
+            a, b = (mid, b) if solve(*make(float(np.exp(mid)))) < drive.strip else (a, mid)
+        return make(float(np.exp(0.5 * (a + b))))
+
+    scanners, plan = system.scanners, drive
+    length = solve(scanners, plan)
+    while (length < lo_l and len(plan.passes) > 1
+           and len(plan.passes) > len({s.pass_index for s in plan.stops})):
+        plan = _drop_a_pass(plan)  # never one with a stop: the standstill is the condition's
+        length = solve(scanners, plan)
+    for step in ("condition speeds", "rates", "vehicle speeds"):
+        if lo_l <= length <= hi_l:
+            break
+        if step == "rates":
+            def make(f: float, sc=scanners, pl=plan) -> tuple[tuple[Scanner, ...], DrivePlan]:
+                return tuple(replace(s, pulse_hz=float(np.clip(s.pulse_hz / f, 1e5, 1e6)))
+                             for s in sc), pl
+        else:
+            speeds = cond.speed if step == "condition speeds" else (0.5, 20.0)
+
+            def make(f: float, sc=scanners, pl=plan, v=speeds
+                     ) -> tuple[tuple[Scanner, ...], DrivePlan]:
+                return sc, pulled(pl, f, v)
+        scanners, plan = bisect(make)
         length = solve(scanners, plan)
     return (replace(system, scanners=scanners),
             replace(plan, strip=float(np.clip(length, lo_l, hi_l))))

@@ -136,7 +136,7 @@ def simulate(condition: str, seed: int, scale: float = 1.0) -> SimulatedCloud:
         hz = np.array([sc.pulse_hz * m for sc, m in zip(system.scanners, moving, strict=True)])
         footprint = float(np.dot(hz, ahead) / hz.sum())
         system, drive = condition_size(drawn_system, replace(drawn_drive, footprint=footprint),
-                                       moving, standing, cond.points)
+                                       moving, standing, cond)
     strip = drive.strip * scale
     extent = strip * (1 + SPARE)
     motion = build_motion(drive, street, system, scale, reach_margin(system, street), extent)
@@ -148,12 +148,16 @@ def simulate(condition: str, seed: int, scale: float = 1.0) -> SimulatedCloud:
 
     ray = rec["ray"]
     n = len(ray)
-    r = rec["r"] + rng.normal(0.0, system.range_sigma, n)
     o, d = survey["o"][ray], survey["d"][ray]
-    xyz = o + r[:, None] * d
     kind = rec["kind"]
+    r = rec["r"].copy()
+    # the ground's mm texture: the beam meets the raised (or sunken) surface earlier (later)
     ground = (kind == SURFACE) & np.isin(rec["mat"], GROUND)
-    xyz[ground, 2] += texture_height(xyz[ground, 0], xyz[ground, 1], street.texture)
+    hit = o[ground] + r[ground, None] * d[ground]
+    lift = texture_height(hit[:, 0], hit[:, 1], street.texture)
+    r[ground] -= lift / np.maximum(-d[ground, 2], 0.1)
+    r += rng.normal(0.0, system.range_sigma, n)
+    xyz = o + r[:, None] * d
     intensity = _intensity(r, rec["cos"], rec["mat"], rec["gain"] * system.intensity_gain, rng)
     # returns of one pulse are numbered by range
     by_pulse = np.lexsort((r, ray))
