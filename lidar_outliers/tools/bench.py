@@ -83,8 +83,8 @@ def parse_seeds(spec: str) -> tuple[int, ...]:
     seeds: list[int] = []
     for part in (p.strip() for p in spec.split(",")):
         try:
-            lo, _, hi = part.partition("-")
-            a, b = int(lo), int(hi) if hi else int(lo)
+            lo, dash, hi = part.partition("-")
+            a, b = int(lo), int(hi) if dash else int(lo)
         except ValueError:
             raise ValueError(f"not a seed or a range of seeds: {part!r}") from None
         if a < 0 or b < a:
