@@ -120,6 +120,8 @@ def simulate(condition: str, seed: int, scale: float = 1.0) -> SimulatedCloud:
         raise ValueError(f"condition must be one of A, B, C, got {condition!r}")
     if not 0.01 <= scale <= 1.0:
         raise ValueError(f"scale must be in [0.01, 1], got {scale!r}")
+    if seed < 0:
+        raise ValueError(f"seed must be 0 or more, got {seed!r}")
     cond = CONDITIONS[condition]
     tag = ord(condition)
     system = draw_system(stream(seed, 1))
