@@ -111,9 +111,14 @@ def simulate(condition: str, seed: int, scale: float = 1.0) -> SimulatedCloud:
     """Simulate the paper's cloud A, B or C (Table 1) as surveyed by the system of ``seed``.
 
     The seed draws the system, street, drive, frame and the outliers' mix and shapes (ranges:
-    :mod:`.family`); the condition keeps the paper's outlier share and character. ``scale``
-    (0.01-1) shortens the strip, the stops and the braking by that factor, so the point count
-    shrinks in proportion; the drawn system and street do not change with it. The result is a
+    :mod:`.family`); the condition keeps the paper's cloud size, outlier share and character.
+    ``scale`` (0.01-1) shortens the strip, the stops and the braking by that factor, so the
+    point count shrinks in proportion; the scanners' layout and mounting and the street do not
+    change with it (the rate setting and the drive are fitted to the cut's size,
+    :func:`.family.condition_size`). Steps: draw; fit the size; drive (poses at 200 Hz); draw
+    the outlier sources; fire and cast every pulse that can reach the cut; cut the street at
+    the paper's count; make the returns of every kind; add range noise and the ground's
+    texture along the beams; number the returns; deliver in the world frame. The result is a
     pure function of (condition, seed, scale).
     """
     if condition not in CONDITIONS:

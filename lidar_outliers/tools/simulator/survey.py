@@ -114,10 +114,11 @@ def build_motion(plan: DrivePlan, street: Street, system: System, scale: float,
     """Pose samples of every pass over the strip [0, L] (L = plan.strip x scale).
 
     Each pass runs from ``margin`` before the strip to ``margin`` after ``extent`` (>= L, the
-    street that may still be cut). Speeds stay real;
-    stop lengths and braking distances shrink with ``scale`` (deceleration / scale, stop
-    seconds x scale), so the part of the drive over the strip is the full-size drive shrunk
-    in space and time, and the point count follows ``scale``.
+    street that may still be cut), forward along its lane with the weave and lane change of its
+    plan. Speeds stay real; stop lengths and braking distances shrink with ``scale``
+    (deceleration / scale, stop seconds x scale), so the part of the drive over the strip is
+    the full-size drive shrunk in space and time, and the point count follows ``scale``. The
+    body pitches and rolls with the road's grade and crown under it.
     """
     strip = plan.strip * scale
     rows: list[np.ndarray] = []
