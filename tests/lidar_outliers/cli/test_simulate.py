@@ -197,3 +197,11 @@ def test_bad_scale_is_one_line_usage_error(tmp_path, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--scale" in err
+
+
+def test_negative_seed_is_one_line_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--condition", "B", "--out", str(tmp_path), "--seed", "-1"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--seed" in err
