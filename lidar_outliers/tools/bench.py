@@ -22,6 +22,7 @@ run.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -223,8 +224,10 @@ def run_outlier_pipeline(cloud, stages: list[str], settings: dict[str, dict] | N
 # --------------------------------------------------------------------------- simulated clouds
 
 
+@functools.cache
 def simulator_version() -> str:
-    """Short hash of the simulator's source: a changed simulator never reuses a stale cache."""
+    """Short hash of the simulator's source: a changed simulator never reuses a stale cache
+    (taken once per run, as the modules were loaded)."""
     from lidar_outliers.tools import simulator
 
     digest = hashlib.sha1()
