@@ -8,8 +8,8 @@ Each cloud is generated in memory by :func:`~lidar_outliers.tools.simulator.simu
 
 - ``height_field`` (:mod:`algorithms.height_field`), geometry only;
 - ``free_space`` (:mod:`algorithms.free_space`), with each point's scanner position taken
-  from the simulated trajectory and the scanners' lever arms (``SCANNERS`` of the simulator),
-  as a mobile-mapping system delivers them;
+  from the simulated trajectory and the drawn system's lever arms, as a mobile-mapping system
+  delivers them;
 - ``transient`` (:mod:`algorithms.transient`), coordinates and GPS times only;
 - ``mobile`` = a point flagged by any of them (the proposed default for mobile-mapping files);
 - ``no_trajectory`` = height_field or transient (what runs when no trajectory comes with a file).
@@ -35,11 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from algorithms.free_space import detect_free_space, scanner_origins  # noqa: E402
 from algorithms.height_field import detect_height_field  # noqa: E402
 from algorithms.transient import detect_transient  # noqa: E402
-from lidar_outliers.tools.simulator import KIND_NAMES, SCANNERS, simulate  # noqa: E402
-
-#: Scanner lever arms (forward, left, up) relative to the trajectory's reference point: the
-#: simulated trajectory is the roof point at the scanners' height.
-LEVER_ARMS = {s.source_id: (s.offset[0], s.offset[1], 0.0) for s in SCANNERS}
+from lidar_outliers.tools.simulator import KIND_NAMES, simulate  # noqa: E402
 
 TARGET_RECALL = 90.0
 TARGET_FALSE_ALARM = 0.05
@@ -55,7 +51,8 @@ def run_one(condition: str, seed: int, scale: float) -> dict:
     hf = detect_height_field(cloud.xyz)
     row["height_field_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    origin = scanner_origins(cloud.gps_time, cloud.point_source_id, cloud.trajectory, LEVER_ARMS)
+    arms = {a[0]: a[1:] for a in cloud.lever_arms()}  # the system's calibration
+    origin = scanner_origins(cloud.gps_time, cloud.point_source_id, cloud.trajectory, arms)
     fs = detect_free_space(cloud.xyz, origin)
     row["free_space_s"] = time.perf_counter() - start
     start = time.perf_counter()

@@ -5,8 +5,8 @@ plain text, one sample per line, columns ``time x y z``:
 
 * ``time`` in seconds, the same time base as the points' ``gps_time``; strictly increasing;
 * ``x y z`` in metres, the same coordinate system as the cloud (file coordinates, not scaled
-  integers), of the vehicle's reference point (the simulator's: the roof point at the
-  scanners' height, so the scanners' lever arms have up = 0);
+  integers), of the vehicle's reference point (the simulator's: an IMU on the roof; its truth
+  file gives the scanners' lever arms from it);
 * columns separated by spaces, tabs, commas or semicolons; further columns (roll, pitch,
   heading...) are ignored; lines starting with ``#`` and blank lines are skipped, and so is a
   first line of column names (``time,x,y,z``).

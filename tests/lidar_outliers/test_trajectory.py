@@ -93,7 +93,7 @@ def test_points_outside_the_trajectory_time_are_left_out():
     sim = simulate("A", 2, 0.01)
     n = len(sim.xyz)
     zeros = np.zeros(n, np.uint8)
-    half = sim.trajectory[: len(sim.trajectory) // 2]
+    half = sim.trajectory[sim.trajectory[:, 0] <= np.median(sim.gps_time)]  # ends mid-survey
     cloud = Cloud(sim.xyz, np.zeros(3), sim.gps_time, sim.point_source_id, zeros,
                   trajectory=half)
     transient = get_detector("transient")

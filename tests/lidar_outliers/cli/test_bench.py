@@ -41,26 +41,39 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
     assert status == 0
     text = md.read_text()
     assert text.splitlines()[2].startswith("Command: `lidar-outliers bench --quick --scale 0.03")
+    # reported on seeds the detectors were not tuned on, and the report says which
+    assert "tuned on seeds 0-2, reported on seeds 100." in text
+    assert "### Systems of the reporting seeds" in text and "| 100 | " in text
     for name in bench.outlier_pipelines():
         assert f"### {name}" in text
     # the paper's published figures sit beside ours (Table 2, cloud A: 3,414 identified)
     assert "| No. of Outliers Identified | " in text and "3,414" in text
     assert "## ISPRS ground-filter samples" in text and "| samp21 | 2,500 |" in text
     assert "| **mean** |" in text
-    assert "### Recall by outlier kind" in text and "exhaust_plume" in text
+    assert "### Recall by outlier kind, per condition" in text and "exhaust_plume" in text
+    assert "lowest kind recall %" in text
     assert "## Real airborne tiles" in text and "| cut.laz | 6,000 | " in text
     assert "| airborne (" in text and "Targets met on " in text
     for name in DETECTORS:
         assert any(line.startswith(f"| {name} | ") for line in text.split("## Speed")[1]
                    .splitlines())
     numbers = json.loads(js.read_text())
+    sim = numbers["simulated"]
+    assert sim["tune_seeds"] == [0, 1, 2] and sim["report_seeds"] == [100]
     # pooled counts are consistent with the truth files of the cached clouds
     cached = sorted((tmp_path / "cache").rglob("*.truth.npz"))
+    assert {p.name for p in cached} == {f"{c}_100.truth.npz" for c in "ABC"}
     by_cond = {p.name[0]: int(np.load(p)["is_outlier"].sum()) for p in cached}
-    for name, per_cloud in numbers["simulated"]["pipelines"].items():
+    for name, per_cloud in sim["pipelines"].items():
         for cond, conf in per_cloud.items():
             assert conf["outliers"] == by_cond[cond], (name, cond)
             assert conf["outliers_identified"] + conf["outliers_missed"] == conf["outliers"]
+            kinds = sim["kinds"][name][cond]
+            assert sum(k["count"] for k in kinds.values()) == conf["outliers"]
+            met = sim["targets"][name][cond]["met"]
+            assert met == (conf["recall"] >= 0.9 and all(k["recall"] >= 0.9
+                                                          for k in kinds.values())
+                           and sim["targets"][name][cond]["false_alarm_pct"] <= 0.05)
     cut = numbers["airborne"]["cut"]
     assert cut["profile"] == "airborne" and cut["gross_found"] <= cut["gross"]
     speed = numbers["speed"]["temporal"]
@@ -113,3 +126,40 @@ def test_leave_one_sample_out_chooses_on_the_other_samples():
     # without 2: 5, 2, 5 -> config 1
     np.testing.assert_array_equal(chosen, [2, 0, 1])
     np.testing.assert_array_equal(held, [9.0, 9.0, 2.0])
+
+
+def test_seed_lists():
+    assert bench.parse_seeds("0-2, 7,10-11") == (0, 1, 2, 7, 10, 11)
+    assert bench.seed_spec([0, 1, 2, 7, 10, 11]) == "0-2, 7, 10, 11"
+    for bad in ("x", "3-1", "-2", "1-"):
+        with pytest.raises(ValueError, match="seed"):
+            bench.parse_seeds(bad)
+
+
+def test_reporting_seeds_are_never_tuning_seeds():
+    cfg = bench.BenchConfig(seeds=5, tune_seeds=tuple(range(100, 103)))
+    assert bench.reporting_seeds(cfg) == (103, 104, 105, 106, 107)
+    fresh = bench.reporting_seeds(bench.BenchConfig(seeds=4, fresh=True))
+    assert len(set(fresh)) == 4 and not set(fresh) & set(bench.TUNE_SEEDS)
+    assert bench.reporting_seeds(bench.BenchConfig(report_seeds=(5, 9))) == (5, 9)
+    with pytest.raises(Exception, match="tuning seeds"):
+        bench.reporting_seeds(bench.BenchConfig(report_seeds=(1, 9)))
+
+
+def test_the_command_states_where_reporting_seeds_start():
+    from lidar_outliers.cli.bench import REPORT_BASE
+
+    assert REPORT_BASE == bench.REPORT_BASE
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["--report-seeds", "1,200"], "--report-seeds: 1 also tuning seed"),
+    (["--report-seeds", "200", "--fresh"], "exclude each other"),
+    (["--tune-seeds", "a-b"], "--tune-seeds: not a seed"),
+])
+def test_bad_seed_options_are_one_line_usage_errors(args, words, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "--quick", *args])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words in err
