@@ -86,12 +86,15 @@ def _upgrade(url: str) -> None:
 
 def test_starts_at_the_same_moment_migrate_once(empty_url: str) -> None:
     """Eight processes open a new database at once: all succeed, the schema is made once."""
-    fork = multiprocessing.get_context("fork")
-    starters = [fork.Process(target=_upgrade, args=(empty_url,)) for _ in range(8)]
+    # spawned, not forked: a fork copies locks other threads of the test run hold (a hang)
+    spawn = multiprocessing.get_context("spawn")
+    starters = [spawn.Process(target=_upgrade, args=(empty_url,)) for _ in range(8)]
     for p in starters:
         p.start()
     for p in starters:
         p.join(timeout=120)
+        if p.exitcode is None:
+            p.kill()
     assert [p.exitcode for p in starters] == [0] * 8
     engine = database.create_engine(empty_url)
     try:

@@ -189,21 +189,26 @@ def test_concurrent_processes_never_exceed_the_limits(store: Store, database_url
     """Six processes of five threads each (as API processes on several hosts would): the
     active-job limit and the storage quota hold together."""
     users = [store.add_user(f"user{i}")[0].id for i in range(USERS)]
-    # forked: the children open their own connections (Store below), nothing of the parent's
-    fork = multiprocessing.get_context("fork")
+    # spawned: the children open their own connections (Store below), nothing of the parent's;
+    # a fork would also copy locks that other threads of the test run hold (a hang)
+    spawn = multiprocessing.get_context("spawn")
     processes, threads = 6, 5
-    barrier, results = fork.Barrier(processes * threads), fork.Queue()
+    barrier, results = spawn.Barrier(processes * threads, timeout=120), spawn.Queue()
     # each user's jobs are in 2 processes x 5 threads; quota 350 bytes = 3 jobs of 100
     limits = {"max_active": LIMIT, "max_stored_bytes": 350}
-    workers = [fork.Process(target=_process_race,
+    workers = [spawn.Process(target=_process_race,
                              args=(database_url, [users[i // 2]], barrier, threads, limits,
                                    results)) for i in range(processes)]
     for p in workers:
         p.start()
-    outcomes = [o for _ in workers for o in results.get(timeout=300)]
-    for p in workers:
-        p.join(timeout=60)
-        assert p.exitcode == 0
+    try:
+        outcomes = [o for _ in workers for o in results.get(timeout=180)]
+    finally:
+        for p in workers:
+            p.join(timeout=60)
+            if p.exitcode is None:
+                p.kill()
+    assert [p.exitcode for p in workers] == [0] * processes
     accepted = Counter(u for u, result in outcomes if result == "ok")
     assert accepted == dict.fromkeys(users, 3), accepted
     assert {r for _, r in outcomes} == {"ok", "QuotaExceeded"}
