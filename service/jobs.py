@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 from lidar_outliers import lasio, view
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import layout
+from lidar_outliers.jobs.documents import status_document  # noqa: F401 - routes import it here
 from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import (
     ObjectInfo,
@@ -442,36 +443,3 @@ def trajectory_facts(path: Path, name: str) -> dict[str, Any]:
         raise Problem(422, "invalid-parameter", str(exc),
                       errors=[{"parameter": "trajectory", "message": str(exc)}]) from None
     return describe_trajectory(traj, name)
-
-
-def status_document(job: Job, base_url: str = "") -> dict[str, Any]:
-    """OGC API - Processes statusInfo plus the resolved inputs and the input file's facts."""
-    self_href = f"{base_url}/jobs/{job.id}"
-    links = [{"href": self_href, "rel": "self", "type": "application/json",
-              "title": "this document"}]
-    if job.status is JobStatus.successful:
-        links += [
-            {"href": f"{self_href}/results", "rel":
-             "http://www.opengis.net/def/rel/ogc/1.0/results", "type": "application/json",
-             "title": "results"},
-            {"href": f"{self_href}/results/cloud", "rel": "enclosure",
-             "type": "application/vnd.laszip" if job.laz else "application/vnd.las",
-             "title": "flagged cloud"},
-            {"href": f"{self_href}/results/statistics", "rel": "describedby",
-             "type": "application/json", "title": "statistics"},
-        ]
-    return {
-        "type": "process",
-        "jobID": job.id,
-        "processID": job.process_id,
-        "status": job.status.value,
-        "message": job.message,
-        "progress": job.progress,
-        "created": job.created,
-        "started": job.started,
-        "finished": job.finished,
-        "updated": job.finished or job.started or job.created,
-        "inputs": job.inputs,
-        "input_file": job.facts,
-        "links": links,
-    }
