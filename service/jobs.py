@@ -221,7 +221,7 @@ class JobService:
     def submit(
         self, user: User, process_id: str, params: dict[str, Any], source: Path | Upload,
         name: str | None = None, *, trajectory: Path | Upload | None = None,
-        trajectory_name: str = "trajectory.txt",
+        trajectory_name: str = "trajectory.txt", subscriber: dict[str, str] | None = None,
     ) -> Job:
         """Create a job from a validated file and parameters and queue it.
 
@@ -229,7 +229,8 @@ class JobService:
         into the storage, and removed when refused) or a stored upload (copied inside the
         storage, so it serves further jobs). In order: the files are checked (415 / 422); the
         limits of active jobs (429) and stored bytes (413) are checked and the job recorded in
-        one transaction; its files are stored and it is queued. When that last step fails, the
+        one transaction (with ``subscriber``: its callback URIs, checked by the caller, and the
+        API's base URL); its files are stored and it is queued. When that last step fails, the
         job is failed and its bytes released (503)."""
         received = [p for p in (source, trajectory) if isinstance(p, Path)]
         try:
@@ -253,7 +254,8 @@ class JobService:
                     user.id, process_id, params, facts, laz, stored_bytes=size,
                     job_id=os.urandom(16).hex(),
                     max_active=self.settings.max_active_jobs_per_user,
-                    max_stored_bytes=self.settings.max_stored_bytes_per_user)
+                    max_stored_bytes=self.settings.max_stored_bytes_per_user,
+                    subscriber=subscriber)
             except TooManyActiveJobs as exc:
                 raise self.too_many_jobs(exc.active) from None
             except QuotaExceeded as exc:
