@@ -1,7 +1,8 @@
-"""The filters of GET /jobs (OGC API - Processes, job-list class), free of FastAPI:
-``processID``, ``status``, ``datetime`` (an instant or an interval of ``created``),
-``minDuration`` / ``maxDuration`` (seconds from ``started`` to ``finished``, or to now for a
-running job; a job not started yet has no duration and is left out when they are given).
+"""The filters of GET /jobs (OGC API - Processes, job-list class), free of FastAPI: ``type``
+(every job here is of type ``process``), ``processID``, ``status``, ``datetime`` (an instant or
+an interval of ``created``), ``minDuration`` / ``maxDuration`` (seconds from ``started`` to
+``finished``, or to now for a running job; a job not started yet has no duration and is left
+out when they are given).
 """
 
 from __future__ import annotations
@@ -73,6 +74,7 @@ class JobFilter:
     datetime: str | None = None
     min_duration: int | None = None
     max_duration: int | None = None
+    types: list[str] = field(default_factory=list)
 
     def check(self) -> None:
         known = {s.value for s in JobStatus}
@@ -91,6 +93,8 @@ class JobFilter:
                offset: int) -> tuple[list[Job], int]:
         """One page of the user's matching jobs, newest first, and how many match in all."""
         self.check()
+        if self.types and "process" not in self.types:
+            return [], 0
         low, high = parse_datetime(self.datetime)
         jobs = store.find_jobs(user_id, self.process_ids or None, self.statuses or None,
                                low, high)

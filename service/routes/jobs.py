@@ -50,11 +50,13 @@ def list_jobs(
                             "Jobs that ran at least this many seconds.")] = None,
     max_duration: Annotated[int | None, Query(alias="maxDuration", ge=0, description=
                             "Jobs that ran at most this many seconds.")] = None,
+    type: Annotated[list[str], Query(description="Only jobs of these types (all jobs here "
+                                     "are of type `process`).")] = [],  # noqa: B006
 ) -> Any:
     """The caller's jobs, newest first, filtered as OGC API - Processes defines."""
     html.wants_html(request)  # 400 for an unknown f before any work
     selection = JobFilter(split_values(process_id), split_values(status), datetime,
-                          min_duration, max_duration)
+                          min_duration, max_duration, split_values(type))
     jobs, total = selection.select(service.store, user.id, limit, offset)
     self_href = _page_href(request, limit, offset)
     links = [{"href": self_href, "rel": "self", "type": "application/json"},

@@ -118,7 +118,7 @@ def test_the_api_definition_is_valid_openapi_3_0(stack: Stack) -> None:
             "/processes/{process_id}/execution", "/jobs", "/jobs/{job_id}",
             "/jobs/{job_id}/results"} <= set(document["paths"])
     parameters = {p["name"] for p in document["paths"]["/jobs"]["get"]["parameters"]}
-    assert {"processID", "status", "datetime", "minDuration", "maxDuration",
+    assert {"type", "processID", "status", "datetime", "minDuration", "maxDuration",
             "limit"} <= parameters
 
 
@@ -231,6 +231,8 @@ def test_job_list_filters(stack: Stack, small: bytes, tmp_path: Path) -> None:
         assert ids(minDuration=0) == [section, bad, ok]
         assert ids(minDuration=3600) == []
         assert ids(maxDuration=3600, status="successful") == [ok]
+        assert ids(type="process", status="failed") == [bad]
+        assert ids(type="openeo") == []
 
         page = client.get("/jobs", params={"status": "successful,failed", "limit": 1}).json()
         assert [j["jobID"] for j in page["jobs"]] == [bad] and page["numberMatched"] == 2
