@@ -18,6 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from lidar_outliers.jobs.settings import Settings, get_settings
 from lidar_outliers.jobs.store import Store
+from service.cors import CORSMiddleware
 from service.jobs import JobService
 from service.problems import MEDIA_TYPE, Problem
 from service.routes import jobs, pages, processes, system, uploads
@@ -104,4 +105,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (system, processes, uploads, jobs, pages):
         app.include_router(module.router)
     app.mount("/app/static", pages.static_files(), name="app-static")
+    if settings.cors_origin_list:
+        app.add_middleware(CORSMiddleware, origins=settings.cors_origin_list)
     return app

@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 from lidar_outliers import lasio, view
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import layout
+from lidar_outliers.jobs.documents import status_document  # noqa: F401 - routes import it here
 from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import (
     ObjectInfo,
@@ -220,7 +221,7 @@ class JobService:
     def submit(
         self, user: User, process_id: str, params: dict[str, Any], source: Path | Upload,
         name: str | None = None, *, trajectory: Path | Upload | None = None,
-        trajectory_name: str = "trajectory.txt",
+        trajectory_name: str = "trajectory.txt", subscriber: dict[str, str] | None = None,
     ) -> Job:
         """Create a job from a validated file and parameters and queue it.
 
@@ -228,7 +229,8 @@ class JobService:
         into the storage, and removed when refused) or a stored upload (copied inside the
         storage, so it serves further jobs). In order: the files are checked (415 / 422); the
         limits of active jobs (429) and stored bytes (413) are checked and the job recorded in
-        one transaction; its files are stored and it is queued. When that last step fails, the
+        one transaction (with ``subscriber``: its callback URIs, checked by the caller, and the
+        API's base URL); its files are stored and it is queued. When that last step fails, the
         job is failed and its bytes released (503)."""
         received = [p for p in (source, trajectory) if isinstance(p, Path)]
         try:
@@ -252,7 +254,8 @@ class JobService:
                     user.id, process_id, params, facts, laz, stored_bytes=size,
                     job_id=os.urandom(16).hex(),
                     max_active=self.settings.max_active_jobs_per_user,
-                    max_stored_bytes=self.settings.max_stored_bytes_per_user)
+                    max_stored_bytes=self.settings.max_stored_bytes_per_user,
+                    subscriber=subscriber)
             except TooManyActiveJobs as exc:
                 raise self.too_many_jobs(exc.active) from None
             except QuotaExceeded as exc:
@@ -442,36 +445,3 @@ def trajectory_facts(path: Path, name: str) -> dict[str, Any]:
         raise Problem(422, "invalid-parameter", str(exc),
                       errors=[{"parameter": "trajectory", "message": str(exc)}]) from None
     return describe_trajectory(traj, name)
-
-
-def status_document(job: Job, base_url: str = "") -> dict[str, Any]:
-    """OGC API - Processes statusInfo plus the resolved inputs and the input file's facts."""
-    self_href = f"{base_url}/jobs/{job.id}"
-    links = [{"href": self_href, "rel": "self", "type": "application/json",
-              "title": "this document"}]
-    if job.status is JobStatus.successful:
-        links += [
-            {"href": f"{self_href}/results", "rel":
-             "http://www.opengis.net/def/rel/ogc/1.0/results", "type": "application/json",
-             "title": "results"},
-            {"href": f"{self_href}/results/cloud", "rel": "enclosure",
-             "type": "application/vnd.laszip" if job.laz else "application/vnd.las",
-             "title": "flagged cloud"},
-            {"href": f"{self_href}/results/statistics", "rel": "describedby",
-             "type": "application/json", "title": "statistics"},
-        ]
-    return {
-        "type": "process",
-        "jobID": job.id,
-        "processID": job.process_id,
-        "status": job.status.value,
-        "message": job.message,
-        "progress": job.progress,
-        "created": job.created,
-        "started": job.started,
-        "finished": job.finished,
-        "updated": job.finished or job.started or job.created,
-        "inputs": job.inputs,
-        "input_file": job.facts,
-        "links": links,
-    }

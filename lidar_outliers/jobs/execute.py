@@ -19,9 +19,11 @@ from typing import TypeVar
 from lidar_outliers.atomic import write_json_atomic
 from lidar_outliers.errors import CancelledError, LidarOutliersError
 from lidar_outliers.jobs import layout
+from lidar_outliers.jobs.callbacks import FAILED, IN_PROGRESS, SUCCESS, deliver
+from lidar_outliers.jobs.documents import results_document, status_document
 from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import Storage, StorageError, open_storage
-from lidar_outliers.jobs.store import FINAL, JobStatus, Store
+from lidar_outliers.jobs.store import FINAL, Job, JobStatus, Store
 from lidar_outliers.params import PipelineParams
 
 log = logging.getLogger(__name__)
@@ -62,8 +64,39 @@ def execute_job(
 
     ``time_limit_errors``: exceptions that mean the job ran out of time (the queue's own soft
     time limit); the job then fails with a message naming the limit. ``storage``: where the
-    job's objects are (default: the one the settings name).
+    job's objects are (default: the one the settings name). The job's subscriber hears of its
+    start and of its success or failure.
     """
+    status = _execute(settings, store, job_id, time_limit_errors, storage)
+    if status in (JobStatus.successful, JobStatus.failed):
+        job = store.get_job(job_id)
+        if job is not None:
+            notify(settings, job, SUCCESS if status is JobStatus.successful else FAILED)
+    return status
+
+
+def notify(settings: Settings, job: Job, which: str) -> bool:
+    """POST the job's document to its subscriber's ``which`` URI, if it gave one: the results
+    document on success, the status document otherwise. Never raises: a callback does not
+    change the job's outcome."""
+    uri = (job.subscriber or {}).get(which)
+    if not uri:
+        return False
+    base_url = (job.subscriber or {}).get("base_url", "")
+    try:
+        document = (results_document(job, base_url) if which == SUCCESS
+                    else status_document(job, base_url))
+        return deliver(uri, document, settings.callback_allow_list)
+    except Exception:  # a callback must never take the worker down
+        log.exception("callback %s of job %s failed", which, job.id)
+        return False
+
+
+def _execute(
+    settings: Settings, store: Store, job_id: str,
+    time_limit_errors: tuple[type[BaseException], ...],
+    storage: Storage | None,
+) -> JobStatus | None:
     storage = storage or open_storage(settings)
     job = store.get_job(job_id)
     if job is None or job.status in FINAL:
@@ -82,6 +115,7 @@ def execute_job(
                                worker_pid=os.getpid())
     if started is None:
         return None
+    notify(settings, started, IN_PROGRESS)
     # folders of deliveries killed on this host: older than any job may run
     layout.sweep_scratch(settings, older_than=settings.visibility_timeout)
     scratch = layout.scratch(settings, f"job-{job_id}")

@@ -46,6 +46,8 @@ jobs = sa.Table(
     sa.Column("stored_bytes", Bytes, nullable=False, server_default=sa.text("0")),
     # the user's n-th job: lists keep submission order whatever the hosts' clocks say
     sa.Column("seq", sa.Integer, nullable=False, server_default=sa.text("0")),
+    # the callback URIs of the execute request as JSON (NULL: none)
+    sa.Column("subscriber", sa.Text),
     sa.Index("jobs_by_user_seq", "user_id", "seq", unique=True),
     sa.Index("jobs_by_user_status", "user_id", "status"),
 )

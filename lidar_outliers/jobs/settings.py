@@ -76,6 +76,22 @@ class Settings(BaseSettings):
     api_host: str = Field("127.0.0.1", description="Address `serve` binds the API to.")
     api_port: int = Field(8000, ge=1, le=65535, description="Port `serve` binds the API to.")
     retry_after_seconds: int = Field(30, ge=1, description="Retry-After sent with 429.")
+    cors_origins: str = Field(
+        "", description="Comma-separated origins (https://portal.example) whose browser "
+        "scripts may call the API; empty: none."
+    )
+    callback_allow: str = Field(
+        "", description="Comma-separated host names that subscriber callbacks may reach even "
+        "though they resolve to private, loopback, link-local or reserved addresses."
+    )
+    sync_max_points: int = Field(
+        2_000_000, ge=0, description="Largest cloud (points) run synchronously with "
+        "`Prefer: wait`; larger ones run asynchronously."
+    )
+    sync_wait_seconds: float = Field(
+        120.0, gt=0, description="How long a synchronous execution waits for its job before "
+        "answering asynchronously."
+    )
 
     @model_validator(mode="after")
     def _resolve(self) -> Settings:
@@ -104,6 +120,14 @@ class Settings(BaseSettings):
         return self
 
     @property
+    def cors_origin_list(self) -> list[str]:
+        return _split(self.cors_origins)
+
+    @property
+    def callback_allow_list(self) -> list[str]:
+        return [h.lower().rstrip(".") for h in _split(self.callback_allow)]
+
+    @property
     def soft_time_limit(self) -> int:
         """The job gets SoftTimeLimitExceeded (and fails cleanly) this long before the kill."""
         return max(1, self.task_time_limit - min(30, self.task_time_limit // 10))
@@ -123,6 +147,10 @@ class Settings(BaseSettings):
         """Local working copies of this host: a job's input and result while a worker runs it,
         a result while the API derives another format or a preview from it."""
         return self.data_dir / "scratch"
+
+
+def _split(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
 
 
 @lru_cache

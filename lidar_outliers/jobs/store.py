@@ -153,6 +153,8 @@ class Job:
     stored_bytes: int = 0
     #: The user's n-th job (lists are in this order).
     seq: int = 0
+    #: Callback URIs (successUri, failedUri, inProgressUri) and the API's base_url, or None.
+    subscriber: dict[str, str] | None = None
     #: Set by :meth:`Store.create_job` only: the user's active jobs before this one (its queue
     #: priority); not stored.
     active_before: int = 0
@@ -176,6 +178,7 @@ class Job:
             worker_pid=row["worker_pid"],
             stored_bytes=int(row["stored_bytes"]),
             seq=row["seq"],
+            subscriber=json.loads(row["subscriber"]) if row["subscriber"] else None,
         )
 
 
@@ -360,6 +363,7 @@ class Store:
         *,
         max_active: int | None = None,
         max_stored_bytes: int | None = None,
+        subscriber: dict[str, str] | None = None,
     ) -> Job:
         """Record a new accepted job that holds ``stored_bytes``.
 
@@ -383,6 +387,7 @@ class Store:
             facts=facts,
             laz=laz,
             stored_bytes=stored_bytes,
+            subscriber=subscriber,
         )
         with self._transaction() as db:
             self._lock_user(db, user_id)
@@ -398,6 +403,7 @@ class Store:
                 id=job.id, user_id=user_id, process_id=process_id, status=job.status.value,
                 progress=0, message=job.message, created=job.created, inputs=json.dumps(inputs),
                 facts=json.dumps(facts), laz=int(laz), stored_bytes=stored_bytes, seq=job.seq,
+                subscriber=json.dumps(subscriber) if subscriber else None,
             ))
         job.active_before = active
         return job
@@ -418,6 +424,24 @@ class Store:
                 sa.select(sa.func.count()).select_from(jobs).where(jobs.c.user_id == user_id)
             ).scalar_one()
         return [Job.from_row(r) for r in rows], int(total)
+
+    def find_jobs(self, user_id: int, process_ids: list[str] | None = None,
+                  statuses: list[str] | None = None, created_from: str | None = None,
+                  created_to: str | None = None) -> list[Job]:
+        """The user's jobs matching every given filter, newest first (``created_*``: ISO 8601
+        UTC with a Z as stored, bounds included)."""
+        query = sa.select(jobs).where(jobs.c.user_id == user_id)
+        if process_ids:
+            query = query.where(jobs.c.process_id.in_(process_ids))
+        if statuses:
+            query = query.where(jobs.c.status.in_(statuses))
+        if created_from:
+            query = query.where(jobs.c.created >= created_from)
+        if created_to:
+            query = query.where(jobs.c.created <= created_to)
+        with self._read() as db:
+            rows = db.execute(query.order_by(jobs.c.seq.desc())).mappings().all()
+        return [Job.from_row(r) for r in rows]
 
     def count_active(self, user_id: int) -> int:
         with self._read() as db:

@@ -9,8 +9,12 @@ from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
+from lidar_outliers.jobs.documents import results_document, status_document
+from lidar_outliers.jobs.store import Job, JobStatus
+from service import html
 from service.deps import ServiceDep, UserDep
-from service.jobs import status_document
+from service.execution import Preference, subscriber_of, wait_for
+from service.jobs import JobService
 from service.problems import Problem
 from service.processes import (
     TRAJECTORY_INPUT,
@@ -25,6 +29,16 @@ router = APIRouter(tags=["processes"])
 
 MAX_JSON_BYTES = 1024**2
 
+SUBSCRIBER_HELP = ("Callbacks: {\"successUri\": ..., \"failedUri\": ..., \"inProgressUri\": "
+                   "...} (JSON text in a multipart request); each receives the results or "
+                   "status document by POST. Private, loopback and reserved addresses are "
+                   "refused unless listed in CALLBACK_ALLOW.")
+PREFER = {"parameters": [{
+    "name": "Prefer", "in": "header", "required": False, "schema": {"type": "string"},
+    "description": "`respond-async` (the default): 201 and the status document. `wait` or "
+    "`wait=<seconds>`: for a cloud of at most SYNC_MAX_POINTS points, 200 and the results "
+    "document once the job is done. Preference-Applied tells which was honoured.",
+}]}
 EXECUTE_BODY = {
     "requestBody": {
         "required": True,
@@ -42,6 +56,7 @@ EXECUTE_BODY = {
                         "trajectory": {"type": "string", "format": "binary",
                                        "description": "Optional trajectory: text lines "
                                        "'time x y z' (used by the transient detector)."},
+                        "subscriber": {"type": "string", "description": SUBSCRIBER_HELP},
                     },
                 }
             },
@@ -49,7 +64,9 @@ EXECUTE_BODY = {
                 "schema": {
                     "type": "object",
                     "required": ["inputs"],
-                    "properties": {"inputs": {"type": "object", "description":
+                    "properties": {"subscriber": {"type": "object",
+                                                  "description": SUBSCRIBER_HELP},
+                                   "inputs": {"type": "object", "description":
                                               'The inputs plus "cloud": {"href": '
                                               '"/uploads/<id>"} from POST /uploads and '
                                               'optionally "trajectory": {"href": ...} from '
@@ -62,30 +79,41 @@ EXECUTE_BODY = {
 
 
 @router.get("/processes")
-def list_processes() -> dict[str, Any]:
-    return {
+def list_processes(request: Request) -> Any:
+    doc = {
         "processes": [summary(p) for p in process_ids()],
-        "links": [{"href": "/processes", "rel": "self", "type": "application/json"}],
+        "links": [{"href": "/processes", "rel": "self", "type": "application/json",
+                   "title": "this document"},
+                  {"href": "/processes?f=html", "rel": "alternate", "type": "text/html",
+                   "title": "this document as HTML"}],
     }
+    return html.processes(doc) if html.wants_html(request) else doc
 
 
 @router.get("/processes/{process_id}")
-def get_process(process_id: str) -> dict[str, Any]:
-    return describe(process_id)
+def get_process(process_id: str, request: Request) -> Any:
+    doc = describe(process_id)
+    return html.process(doc) if html.wants_html(request) else doc
 
 
-def _json_inputs(text: str) -> Any:
+def _json_inputs(text: str, part: str = "inputs") -> Any:
     try:
         return json.loads(text) if text.strip() else {}
     except json.JSONDecodeError as exc:
-        raise Problem(400, "invalid-parameter", f"inputs: not valid JSON ({exc})",
-                      errors=[{"parameter": "inputs", "message": "not valid JSON"}]) from None
+        raise Problem(400, "invalid-parameter", f"{part}: not valid JSON ({exc})",
+                      errors=[{"parameter": part, "message": "not valid JSON"}]) from None
 
 
-@router.post("/processes/{process_id}/execution", status_code=201, openapi_extra=EXECUTE_BODY)
+@router.post("/processes/{process_id}/execution", status_code=201,
+             openapi_extra=EXECUTE_BODY | PREFER,
+             responses={200: {"description": "Synchronous execution (`Prefer: wait`): the "
+                              "results document."}})
 async def execute(process_id: str, request: Request, service: ServiceDep,
                   user: UserDep) -> JSONResponse:
-    """Queue a job: answers 201, ``Location: /jobs/{id}`` and the status document."""
+    """Queue a job: answers 201, ``Location: /jobs/{id}`` and the status document; with
+    ``Prefer: wait`` and a small cloud, 200 and the results document when it is done."""
+    preference = Preference.parse(request.headers.getlist("prefer"))
+    base_url = str(request.base_url)
     inputs_model(process_id)  # 404 before reading a large body
     await run_in_threadpool(service.check_active_limit, user)  # 429 likewise
     content_type = request.headers.get("content-type", "")
@@ -99,6 +127,10 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         try:
             params, cloud = service.parse_inputs(process_id,
                                                  _json_inputs(received.fields.get("inputs", "")))
+            subscriber_text = received.fields.get("subscriber", "")
+            subscriber = await run_in_threadpool(
+                subscriber_of, _json_inputs(subscriber_text, "subscriber")
+                if subscriber_text.strip() else None, service.settings, base_url)
             if cloud is not None:
                 raise Problem(422, "invalid-parameter", "cloud: give the file in part `file` "
                               "or an href in a JSON request, not both")
@@ -107,7 +139,8 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
             raise
         job = await run_in_threadpool(service.submit, user, process_id, params, received.path,
                                       received.filename, trajectory=received.trajectory,
-                                      trajectory_name=received.trajectory_name)
+                                      trajectory_name=received.trajectory_name,
+                                      subscriber=subscriber)
     elif content_type.startswith("application/json"):
         body = await request.body()
         if len(body) > MAX_JSON_BYTES:
@@ -116,6 +149,8 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         if not isinstance(document, dict) or not isinstance(document.get("inputs", {}), dict):
             raise Problem(400, "invalid-request", 'send {"inputs": {"cloud": {"href": '
                           '"/uploads/<id>"}, ...}}')
+        subscriber = await run_in_threadpool(subscriber_of, document.get("subscriber"),
+                                             service.settings, base_url)
         inputs = dict(document.get("inputs", {}))
         trajectory_ref = inputs.pop(TRAJECTORY_INPUT, None)
         params, cloud = service.parse_inputs(process_id, inputs)
@@ -129,10 +164,28 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         if trajectory_ref is not None:
             trajectory = await run_in_threadpool(service.trajectory_upload, user, trajectory_ref)
         job = await run_in_threadpool(service.submit, user, process_id, params, upload,
-                                      trajectory=trajectory)
+                                      trajectory=trajectory, subscriber=subscriber)
     else:
         raise Problem(415, "unsupported-media-type",
                       "send multipart/form-data (part `file` and optional part `inputs`) or "
                       "application/json with inputs.cloud.href")
-    return JSONResponse(status_document(job), status_code=201,
-                        headers={"Location": f"/jobs/{job.id}"})
+    return await _answer(job, preference, service)
+
+
+async def _answer(job: Job, preference: Preference, service: JobService) -> JSONResponse:
+    """The results once done for a synchronous execution, else the status document."""
+    headers = {"Location": f"/jobs/{job.id}"}
+    if preference.synchronous(job, service.settings):
+        done = await run_in_threadpool(wait_for, service.store, job,
+                                       preference.deadline(service.settings))
+        sync_headers = {"Preference-Applied": preference.applied(),
+                        "Link": f'</jobs/{job.id}>; rel="monitor"'}
+        if done.status is JobStatus.successful:
+            return JSONResponse(results_document(done), status_code=200, headers=sync_headers)
+        if done.status is JobStatus.failed:
+            raise Problem(422, "job-failed", f"job {job.id} failed: {done.message}",
+                          jobID=job.id, headers=sync_headers)
+        job = done  # not done in time (or dismissed): answered as an asynchronous job
+    elif preference.respond_async:
+        headers["Preference-Applied"] = "respond-async"
+    return JSONResponse(status_document(job), status_code=201, headers=headers)
