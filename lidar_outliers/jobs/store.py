@@ -425,11 +425,11 @@ class Store:
             return bool(db.execute(sa.delete(resumable_uploads)
                                    .where(resumable_uploads.c.id == upload_id)).rowcount)
 
-    def resumables_expired(self, stamp: str, host: str | None = None) -> list[Resumable]:
-        """Unfinished uploads whose expiry is before ``stamp`` (of one host when given)."""
+    def resumables_expired(self, stamp: str, user_id: int | None = None) -> list[Resumable]:
+        """Unfinished uploads whose expiry is before ``stamp`` (of one user when given)."""
         query = sa.select(resumable_uploads).where(resumable_uploads.c.expires < stamp)
-        if host is not None:
-            query = query.where(resumable_uploads.c.host == host)
+        if user_id is not None:
+            query = query.where(resumable_uploads.c.user_id == user_id)
         with self._read() as db:
             rows = db.execute(query).mappings().all()
         return [Resumable.from_row(r) for r in rows]
