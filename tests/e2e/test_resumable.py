@@ -91,8 +91,12 @@ def cut_patch(stack: Stack, key: str, location: str, offset: int, body: bytes,
     head = (f"PATCH {location} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {key}\r\n"
             f"Tus-Resumable: 1.0.0\r\nContent-Type: application/offset+octet-stream\r\n"
             f"Upload-Offset: {offset}\r\nContent-Length: {declared}\r\n\r\n").encode()
+    part = stack.data_dir / "uploads" / "resumable" / f"{location.rsplit('/', 1)[1]}.part"
     with socket.create_connection(("127.0.0.1", stack.port), timeout=10) as sock:
         sock.sendall(head + body)
+        # closed once the API has written what it received (bytes still in its buffers when
+        # the connection drops are lost, as on any link)
+        wait_for(lambda: part.stat().st_size == offset + len(body), 30, "the bytes on disk")
 
 
 def test_options_advertise_the_protocol(stack: Stack) -> None:
