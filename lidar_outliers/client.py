@@ -193,16 +193,23 @@ class Client:
 
     def _upload_tus(self, path: Path, kind: str,
                     progress: ByteProgress | None) -> dict[str, Any]:
+        created = self.create_upload(path, kind)
+        self.resume(created["location"], path, progress)
+        return created
+
+    def create_upload(self, path: Source, kind: str = "cloud") -> dict[str, Any]:
+        """Create a tus upload for ``path`` (its size is reserved on the server); returns
+        ``{"id", "href", "name", "bytes", "location"}``: :meth:`resume` sends to
+        ``location``, jobs name ``href``."""
+        path = Path(path)
         size = path.stat().st_size
         meta = ",".join(f"{k} {base64.b64encode(v.encode()).decode()}"
                         for k, v in (("filename", path.name), ("kind", kind)))
         created = self._request("POST", "/uploads/tus", headers=TUS | {
             "Upload-Length": str(size), "Upload-Metadata": meta})
-        location = created.headers["location"]
         info = created.json()
-        self.resume(location, path, progress)
         return {"id": info["id"], "href": info["href"], "name": info["name"], "bytes": size,
-                "location": location}
+                "location": created.headers["location"]}
 
     def resume(self, location: str, path: Source,
                progress: ByteProgress | None = None) -> int:
@@ -212,7 +219,7 @@ class Client:
         without progress."""
         path = Path(path)
         size = path.stat().st_size
-        offset = self._tus_offset(location)
+        offset = self.upload_offset(location)
         sent = failures = 0
         delay = self.retry_delay
         with open(path, "rb") as file:
@@ -247,11 +254,12 @@ class Client:
                     raise failed  # type: ignore[misc]
                 time.sleep(delay)
                 delay = min(delay * 2, 30.0)
-                offset = self._tus_offset(location, retries=TUS_ATTEMPTS)
+                offset = self.upload_offset(location, retries=TUS_ATTEMPTS)
         return sent
 
-    def _tus_offset(self, location: str, retries: int = 1) -> int:
-        """The server's ``Upload-Offset`` of an upload (HEAD), retried while unreachable."""
+    def upload_offset(self, location: str, retries: int = 1) -> int:
+        """The server's ``Upload-Offset`` of a tus upload (HEAD): the bytes it holds;
+        retried ``retries`` times while the server is unreachable."""
         attempt = 0
         while True:
             try:
