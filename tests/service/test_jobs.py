@@ -215,7 +215,8 @@ def _part(tmp_path: Path, settings: Settings) -> Path:
 
 
 def run_cli(tmp_path: Path, *args: str, **settings: str) -> subprocess.CompletedProcess:
-    env = dict(os.environ, DATA_DIR=str(tmp_path / "data"), **settings)
+    # PYTHONPATH: the command imports this checkout's code, whichever one the venv came from
+    env = dict(os.environ, DATA_DIR=str(tmp_path / "data"), PYTHONPATH=str(ROOT), **settings)
     return subprocess.run([str(Path(sys.executable).parent / "lidar-outliers"), *args],
                           env=env, cwd=ROOT, capture_output=True, text=True, timeout=60)
 
