@@ -21,7 +21,8 @@ from lidar_outliers.jobs.store import Store
 from service.cors import CORSMiddleware
 from service.jobs import JobService
 from service.problems import MEDIA_TYPE, Problem
-from service.routes import jobs, pages, processes, system, uploads
+from service.routes import jobs, pages, processes, system, tus, uploads
+from service.tus import ResumableUploads
 
 log = logging.getLogger(__name__)
 
@@ -98,11 +99,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     # opening the store migrates the database's schema (safely when several APIs start at once)
     app.state.service = JobService(settings, Store(settings.database_url))
+    app.state.resumable = ResumableUploads(app.state.service)
     app.add_exception_handler(Problem, _on_problem)
     app.add_exception_handler(RequestValidationError, _on_validation)
     app.add_exception_handler(StarletteHTTPException, _on_http)
     app.add_exception_handler(Exception, _on_crash(settings))
-    for module in (system, processes, uploads, jobs, pages):
+    for module in (system, processes, tus, uploads, jobs, pages):
         app.include_router(module.router)
     app.mount("/app/static", pages.static_files(), name="app-static")
     if settings.cors_origin_list:

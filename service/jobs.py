@@ -7,6 +7,7 @@ request body is checked on this host, then moved into the storage; results are r
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -433,8 +434,30 @@ class JobService:
         for part in self.incoming_dir.glob("*.part") if self.incoming_dir.exists() else []:
             if datetime.fromtimestamp(part.stat().st_mtime, UTC) < now - timedelta(days=1):
                 part.unlink(missing_ok=True)
+        removed += self.expire_resumables(now)
         layout.sweep_scratch(self.settings, older_than=self.settings.visibility_timeout)
         return removed
+
+
+    def expire_resumables(self, now: datetime | None = None, user_id: int | None = None) -> int:
+        """Delete unfinished resumable uploads past their expiry, which frees the bytes they
+        reserved, with their partial files on this host; also partial files of this host that
+        no record could still use (written to longer ago than any upload stays). Returns how
+        many records went."""
+        now = now or datetime.now(UTC)
+        stamp = now.isoformat(timespec="milliseconds").replace("+00:00", "Z")
+        expired = self.store.resumables_expired(stamp, user_id)
+        folder = self.settings.resumable_dir
+        for upload in expired:
+            self.store.delete_resumable(upload.id)
+            (folder / f"{upload.id}.part").unlink(missing_ok=True)
+        if user_id is None and folder.is_dir():
+            cutoff = now - timedelta(hours=self.settings.resumable_expiry_hours + 1)
+            for part in folder.glob("*.part"):
+                with contextlib.suppress(FileNotFoundError):
+                    if datetime.fromtimestamp(part.stat().st_mtime, UTC) < cutoff:
+                        part.unlink()
+        return len(expired)
 
 
 def trajectory_facts(path: Path, name: str) -> dict[str, Any]:

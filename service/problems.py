@@ -34,6 +34,22 @@ PROBLEMS: dict[str, tuple[str, str]] = {
                               "file's size (Content-Range: bytes */size), e.g. bytes=0-1023."),
     "service-unavailable": ("Service unavailable", "Redis, the workers, the database or the "
                             "file storage are not reachable."),
+    "no-such-upload": ("Unknown upload", "POST /uploads/tus creates one; another user's "
+                       "uploads are not visible."),
+    "upload-expired": ("Upload expired", "An unfinished upload is deleted "
+                       "RESUMABLE_EXPIRY_HOURS after its last PATCH; create a new one."),
+    "offset-mismatch": ("Offset mismatch", "HEAD the upload and PATCH from its Upload-Offset."),
+    "checksum-mismatch": ("Checksum mismatch", "The piece was dropped; PATCH it again from the "
+                          "same Upload-Offset."),
+    "unsupported-checksum": ("Checksum algorithm not supported", "OPTIONS /uploads/tus lists "
+                             "them in Tus-Checksum-Algorithm."),
+    "upload-locked": ("Upload busy", "Another request is writing to this upload; retry after "
+                      "Retry-After seconds from the Upload-Offset HEAD gives."),
+    "upload-length-exceeded": ("Past the upload's length", "Send no more than Upload-Length "
+                               "bytes in all."),
+    "tus-version": ("tus version not supported", "Send `Tus-Resumable: 1.0.0`."),
+    "wrong-content-type": ("Wrong content type", "PATCH bodies are "
+                           "`Content-Type: application/offset+octet-stream`."),
     "internal-error": ("Internal error", "Report it with the time of the request."),
 }
 OGC_SLUGS = {"no-such-process", "no-such-job", "result-not-ready"}

@@ -65,3 +65,24 @@ uploads = sa.Table(
     # header facts of a cloud or a trajectory's summary, so a job can use it without reading it
     sa.Column("facts", sa.Text),
 )
+
+resumable_uploads = sa.Table(
+    "resumable_uploads",
+    metadata,
+    # the id the upload keeps in ``uploads`` once its last byte has arrived
+    sa.Column("id", sa.Text, primary_key=True),
+    sa.Column("user_id", sa.Integer, sa.ForeignKey("users.id"), nullable=False),
+    sa.Column("name", sa.Text, nullable=False),
+    # cloud or trajectory, as for POST /uploads?kind=
+    sa.Column("kind", sa.Text, nullable=False),
+    # the announced size: reserved against the user's quota from the start
+    sa.Column("length", Bytes, nullable=False),
+    # bytes received and on disk (fsync'd); a PATCH continues here
+    sa.Column("offset", Bytes, nullable=False, server_default=sa.text("0")),
+    sa.Column("created", sa.Text, nullable=False),
+    # unfinished uploads are deleted after this time (moved on by every PATCH)
+    sa.Column("expires", sa.Text, nullable=False),
+    # the host whose disk holds the partial data
+    sa.Column("host", sa.Text, nullable=False),
+    sa.Index("resumable_uploads_by_expiry", "expires"),
+)

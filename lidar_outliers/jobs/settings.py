@@ -58,6 +58,10 @@ class Settings(BaseSettings):
     retention_days: float = Field(
         7.0, gt=0, description="Finished jobs and unused uploads older than this are deleted."
     )
+    resumable_expiry_hours: float = Field(
+        24.0, gt=0, description="An unfinished resumable (tus) upload is deleted this long after "
+        "its last PATCH, and its reserved bytes freed."
+    )
     cleanup_interval_seconds: float = Field(
         3600.0, gt=0, description="How often the API runs the retention cleanup."
     )
@@ -141,6 +145,11 @@ class Settings(BaseSettings):
     def incoming_dir(self) -> Path:
         """Request bodies being received by the API on this host, before they are checked."""
         return self.data_dir / "uploads" / "incoming"
+
+    @property
+    def resumable_dir(self) -> Path:
+        """The bytes of resumable uploads received so far by the API on this host."""
+        return self.data_dir / "uploads" / "resumable"
 
     @property
     def scratch_dir(self) -> Path:

@@ -33,7 +33,7 @@ import sqlalchemy as sa
 
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import database
-from lidar_outliers.jobs.schema import jobs, uploads, users
+from lidar_outliers.jobs.schema import jobs, resumable_uploads, uploads, users
 
 
 class StoreError(LidarOutliersError):
@@ -132,6 +132,27 @@ class Upload:
         return cls(id=row["id"], user_id=row["user_id"], name=row["name"], key=row["key"],
                    bytes=int(row["bytes"]), created=row["created"],
                    facts=json.loads(facts) if facts else None)
+
+
+@dataclass
+class Resumable:
+    """An upload still arriving in pieces (tus); its bytes so far lie on ``host``'s disk."""
+
+    id: str
+    user_id: int
+    name: str
+    kind: str
+    length: int
+    offset: int
+    created: str
+    expires: str
+    host: str
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any]) -> Resumable:
+        return cls(id=row["id"], user_id=row["user_id"], name=row["name"], kind=row["kind"],
+                   length=int(row["length"]), offset=int(row["offset"]),
+                   created=row["created"], expires=row["expires"], host=row["host"])
 
 
 @dataclass
@@ -241,7 +262,12 @@ class Store:
             sa.select(sa.func.coalesce(sa.func.sum(uploads.c.bytes), 0))
             .where(uploads.c.user_id == user_id)
         ).scalar_one()
-        return int(in_jobs) + int(in_uploads)
+        # an unfinished resumable upload holds its announced length
+        arriving = db.execute(
+            sa.select(sa.func.coalesce(sa.func.sum(resumable_uploads.c.length), 0))
+            .where(resumable_uploads.c.user_id == user_id)
+        ).scalar_one()
+        return int(in_jobs) + int(in_uploads) + int(arriving)
 
     @staticmethod
     def _count_active(db: sa.Connection, user_id: int) -> int:
@@ -348,6 +374,68 @@ class Store:
                 sa.select(uploads).where(uploads.c.created < stamp)
             ).mappings().all()
         return [Upload.from_row(r) for r in rows]
+
+    # ---- resumable uploads -------------------------------------------------------------------
+
+    def add_resumable(
+        self, user_id: int, name: str, kind: str, length: int, expires: str, host: str, *,
+        max_stored_bytes: int | None = None,
+    ) -> Resumable:
+        """Record a new resumable upload of ``length`` bytes, reserved against the user's quota
+        in the same transaction (:class:`QuotaExceeded` when it does not fit)."""
+        upload = Resumable(id=uuid.uuid4().hex, user_id=user_id, name=name, kind=kind,
+                           length=length, offset=0, created=now(), expires=expires, host=host)
+        with self._transaction() as db:
+            self._lock_user(db, user_id)
+            self._check_quota(db, user_id, length, max_stored_bytes)
+            db.execute(sa.insert(resumable_uploads).values(
+                id=upload.id, user_id=user_id, name=name, kind=kind, length=length, offset=0,
+                created=upload.created, expires=expires, host=host))
+        return upload
+
+    def get_resumable(self, upload_id: str, user_id: int) -> Resumable | None:
+        with self._read() as db:
+            row = db.execute(
+                sa.select(resumable_uploads).where(resumable_uploads.c.id == upload_id,
+                                                   resumable_uploads.c.user_id == user_id)
+            ).mappings().first()
+        return Resumable.from_row(row) if row else None
+
+    def set_resumable_offset(self, upload_id: str, offset: int, expires: str) -> None:
+        with self._transaction() as db:
+            db.execute(sa.update(resumable_uploads).where(resumable_uploads.c.id == upload_id)
+                       .values(offset=offset, expires=expires))
+
+    def complete_resumable(self, upload: Resumable, key: str,
+                           facts: dict[str, Any] | None) -> Upload:
+        """The arrived upload becomes an ordinary one under the same id, in one transaction:
+        its reserved bytes pass from one table to the other, so the quota never counts them
+        twice nor drops them."""
+        done = Upload(id=upload.id, user_id=upload.user_id, name=upload.name, key=key,
+                      bytes=upload.length, created=now(), facts=facts)
+        with self._transaction() as db:
+            removed = db.execute(sa.delete(resumable_uploads)
+                                 .where(resumable_uploads.c.id == upload.id)).rowcount
+            if not removed:
+                raise StoreError(f"no resumable upload {upload.id!r}")
+            db.execute(sa.insert(uploads).values(
+                id=done.id, user_id=done.user_id, name=done.name, key=key, bytes=done.bytes,
+                created=done.created, facts=json.dumps(facts) if facts is not None else None))
+        return done
+
+    def delete_resumable(self, upload_id: str) -> bool:
+        with self._transaction() as db:
+            return bool(db.execute(sa.delete(resumable_uploads)
+                                   .where(resumable_uploads.c.id == upload_id)).rowcount)
+
+    def resumables_expired(self, stamp: str, user_id: int | None = None) -> list[Resumable]:
+        """Unfinished uploads whose expiry is before ``stamp`` (of one user when given)."""
+        query = sa.select(resumable_uploads).where(resumable_uploads.c.expires < stamp)
+        if user_id is not None:
+            query = query.where(resumable_uploads.c.user_id == user_id)
+        with self._read() as db:
+            rows = db.execute(query).mappings().all()
+        return [Resumable.from_row(r) for r in rows]
 
     # ---- jobs --------------------------------------------------------------------------------
 

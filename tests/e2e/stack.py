@@ -140,8 +140,10 @@ class Stack:
 
     def __init__(self, data_dir: Path, redis_url: str, **settings: Any) -> None:
         self.data_dir = data_dir
+        # PYTHONPATH: the commands (`lidar-outliers ...`) import this checkout's code too,
+        # whichever checkout the virtual environment was installed from
         self.env = dict(os.environ, DATA_DIR=str(data_dir), REDIS_URL=redis_url,
-                        PYTHONUNBUFFERED="1",
+                        PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT),
                         **{k.upper(): str(v) for k, v in settings.items()})
         self.env.pop("PYTEST_CURRENT_TEST", None)
         self.workers: list[subprocess.Popen] = []
