@@ -186,6 +186,7 @@ def _part(tmp_path: Path, settings: Settings) -> Path:
 
 def run_cli(tmp_path: Path, *args: str, **settings: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, DATA_DIR=str(tmp_path / "data"), **settings)
+    env["PYTHONPATH"] = str(ROOT)  # this checkout's code, wherever the console script points
     return subprocess.run([str(Path(sys.executable).parent / "lidar-outliers"), *args],
                           env=env, cwd=ROOT, capture_output=True, text=True, timeout=60)
 
