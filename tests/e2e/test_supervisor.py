@@ -118,12 +118,23 @@ def test_killed_worker_is_restarted_and_its_job_runs_again(served: Served,
     assert (record.attempts, record.requeues) == (2, 1)
 
 
-def test_killed_redis_is_restarted_and_new_jobs_run(served: Served, tmp_path: Path) -> None:
+def test_killed_redis_is_restarted_and_no_job_is_lost(served: Served, tmp_path: Path) -> None:
+    slow, small = tmp_path / "slow.las", tmp_path / "small.las"
+    write_cloud(slow, n=POINTS, seed=5)
+    write_cloud(small, n=2000, seed=12)
+    running = submit(served, slow, SLOW)
+    queued = submit(served, small)  # waits in Redis behind the running one
+    store = Store(served.data_dir / "service.sqlite3", migrate=False)
+    wait_for(lambda: store.get_job(running).status.value == "running", 60, "the job to run")
     before = served.programs()
     os.kill(before["redis"], signal.SIGKILL)
     after = served.restarted("redis", before["redis"])
     assert (after["worker"], after["api"]) == (before["worker"], before["api"])
-    small_job_succeeds(served, tmp_path)
+    with served.client() as client:
+        for job in (running, queued):  # from Redis's append-only file, or queued again
+            done = wait_job(client, job, ("successful", "failed"), timeout=90)
+            assert done["status"] == "successful", done["message"]
+    small_job_succeeds(served, tmp_path)  # and one sent after the restart
     assert served.programs() == after
 
 
