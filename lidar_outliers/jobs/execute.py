@@ -108,15 +108,17 @@ def execute_job(
             store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
     except LidarOutliersError as exc:
-        return _fail(store, storage, job_id, str(exc))
+        return _fail(store, storage, job_id, str(exc), started.attempts)
     except MemoryError:
-        return _fail(store, storage, job_id, "the job ran out of memory")
+        return _fail(store, storage, job_id, "the job ran out of memory", started.attempts)
     except time_limit_errors:
         return _fail(store, storage, job_id,
-                     f"the job exceeded the time limit of {settings.task_time_limit} s")
+                     f"the job exceeded the time limit of {settings.task_time_limit} s",
+                     started.attempts)
     except Exception as exc:
         log.exception("job %s failed", job_id)
-        return _fail(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}")
+        return _fail(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}",
+                     started.attempts)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     done = store.transition(job_id, JobStatus.successful, "done", stored_bytes=stored)
@@ -164,13 +166,18 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
     return stored
 
 
-def _fail(store: Store, storage: Storage, job_id: str, message: str) -> JobStatus:
+def _fail(store: Store, storage: Storage, job_id: str, message: str,
+          attempt: int) -> JobStatus | None:
+    """Record the failure of delivery ``attempt``, unless the job is no longer its own."""
     prefix = layout.job_prefix(job_id)
-    if store.status(job_id) is JobStatus.dismissed:
+    job = store.get_job(job_id)
+    if job is not None and job.status is JobStatus.dismissed:
         # the error came from the dismissal itself (e.g. the API removed the objects)
         _quietly(storage.delete_prefix, prefix)
         store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
+    if job is None or job.status is not JobStatus.running or job.attempts != attempt:
+        return None  # queued again or started by another delivery since: its outcome counts
     for name in layout.RESULT_NAMES:
         _quietly(storage.delete, prefix + name)
     # the storage may be what failed: the job is recorded as failed all the same
