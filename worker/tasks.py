@@ -37,7 +37,9 @@ def _storage() -> Storage:
 
 
 @app.task(name=RUN_JOB_TASK, acks_late=True, reject_on_worker_lost=True)
-def run_job(job_id: str) -> str | None:
+def run_job(job_id: str, requeue: int = 0) -> str | None:
+    """``requeue``: the job's re-queue count when the message was sent (0 from the API)."""
     status = execute_job(get_settings(), _store(), job_id,
-                         time_limit_errors=(SoftTimeLimitExceeded,), storage=_storage())
+                         time_limit_errors=(SoftTimeLimitExceeded,), storage=_storage(),
+                         requeue=requeue)
     return status.value if status else None

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +22,7 @@ from lidar_outliers.errors import CancelledError, LidarOutliersError
 from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.callbacks import FAILED, IN_PROGRESS, SUCCESS, deliver
 from lidar_outliers.jobs.documents import results_document, status_document
+from lidar_outliers.jobs.janitor import died_message
 from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import Storage, StorageError, open_storage
 from lidar_outliers.jobs.store import FINAL, Job, JobStatus, Store
@@ -34,13 +36,19 @@ PROGRESS_INTERVAL = 0.5
 DISMISSED_WHILE_RUNNING = "dismissed by the user; the worker stopped the running job"
 
 
+class Superseded(CancelledError):
+    """This delivery's job was taken back (its worker looked gone) and queued again."""
+
+
 class Progress:
     """The ``progress(fraction, message)`` callback of ``process_file``: records progress and
-    raises :class:`CancelledError` once the job has been dismissed (DELETE /jobs/{id})."""
+    raises :class:`CancelledError` once the job has been dismissed (DELETE /jobs/{id}), or
+    :class:`Superseded` once another delivery has it."""
 
-    def __init__(self, store: Store, job_id: str) -> None:
+    def __init__(self, store: Store, job_id: str, attempt: int | None = None) -> None:
         self.store = store
         self.job_id = job_id
+        self.attempt = attempt
         self._last_time = 0.0
         self._last_percent = -1
 
@@ -50,7 +58,9 @@ class Progress:
         if percent == self._last_percent and now - self._last_time < PROGRESS_INTERVAL:
             return
         self._last_time, self._last_percent = now, percent
-        status = self.store.set_progress(self.job_id, percent, message)
+        status = self.store.set_progress(self.job_id, percent, message, self.attempt)
+        if status is None or status is JobStatus.accepted:
+            raise Superseded("the job was queued again")
         if status is not JobStatus.running:
             raise CancelledError("the job was dismissed")
 
@@ -59,15 +69,19 @@ def execute_job(
     settings: Settings, store: Store, job_id: str,
     time_limit_errors: tuple[type[BaseException], ...] = (),
     storage: Storage | None = None,
+    requeue: int = 0,
 ) -> JobStatus | None:
     """Run one delivery of a job; return its final status (None when there was nothing to do).
 
+    ``requeue``: the job's re-queue count when this message was sent
+    (:mod:`lidar_outliers.jobs.janitor`); a message older than the job's latest re-queue is
+    dropped, so a job runs once however many of its messages Redis delivers.
     ``time_limit_errors``: exceptions that mean the job ran out of time (the queue's own soft
     time limit); the job then fails with a message naming the limit. ``storage``: where the
     job's objects are (default: the one the settings name). The job's subscriber hears of its
     start and of its success or failure.
     """
-    status = _execute(settings, store, job_id, time_limit_errors, storage)
+    status = _execute(settings, store, job_id, time_limit_errors, storage, requeue)
     if status in (JobStatus.successful, JobStatus.failed):
         job = store.get_job(job_id)
         if job is not None:
@@ -96,23 +110,23 @@ def _execute(
     settings: Settings, store: Store, job_id: str,
     time_limit_errors: tuple[type[BaseException], ...],
     storage: Storage | None,
+    requeue: int,
 ) -> JobStatus | None:
     storage = storage or open_storage(settings)
     job = store.get_job(job_id)
     if job is None or job.status in FINAL:
         return None  # dismissed (or deleted by retention) before a worker got to it
+    if job.requeues != requeue:
+        return None  # queued again since this message was sent: that newer message runs it
     prefix = layout.job_prefix(job_id)
     if job.status is JobStatus.running and job.attempts >= settings.max_attempts:
         # every earlier delivery died with its worker (SIGKILL, out of memory): give up
-        store.transition(
-            job_id, JobStatus.failed,
-            f"the worker running this job died {job.attempts} times (killed, e.g. out of "
-            "memory); the job is not retried",
-            stored_bytes=_quietly(storage.prefix_bytes, prefix),
-        )
+        store.transition(job_id, JobStatus.failed, died_message(job.attempts),
+                         stored_bytes=_quietly(storage.prefix_bytes, prefix))
         return JobStatus.failed
     started = store.transition(job_id, JobStatus.running, "reading the cloud",
-                               worker_pid=os.getpid())
+                               worker_pid=os.getpid(), worker_host=socket.gethostname(),
+                               requeues=requeue)
     if started is None:
         return None
     notify(settings, started, IN_PROGRESS)
@@ -120,33 +134,39 @@ def _execute(
     layout.sweep_scratch(settings, older_than=settings.visibility_timeout)
     scratch = layout.scratch(settings, f"job-{job_id}")
     try:
-        stored = _run(settings, store, storage, job_id, scratch)
+        stored = _run(settings, store, storage, job_id, scratch, started.attempts)
+    except Superseded:
+        return None  # the job's files are the newer delivery's now
     except CancelledError:
         _quietly(storage.delete_prefix, prefix)
         if store.status(job_id) is JobStatus.dismissed:
             store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
     except LidarOutliersError as exc:
-        return _fail(store, storage, job_id, str(exc))
+        return _fail(store, storage, job_id, str(exc), started.attempts)
     except MemoryError:
-        return _fail(store, storage, job_id, "the job ran out of memory")
+        return _fail(store, storage, job_id, "the job ran out of memory", started.attempts)
     except time_limit_errors:
         return _fail(store, storage, job_id,
-                     f"the job exceeded the time limit of {settings.task_time_limit} s")
+                     f"the job exceeded the time limit of {settings.task_time_limit} s",
+                     started.attempts)
     except Exception as exc:
         log.exception("job %s failed", job_id)
-        return _fail(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}")
+        return _fail(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}",
+                     started.attempts)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     done = store.transition(job_id, JobStatus.successful, "done", stored_bytes=stored)
-    if done is None:  # dismissed while the result was being written
-        _quietly(storage.delete_prefix, prefix)
+    if done is None:
+        if store.status(job_id) is not JobStatus.dismissed:
+            return None  # another delivery of the job ended it first; its files stay
+        _quietly(storage.delete_prefix, prefix)  # dismissed while the result was written
         return JobStatus.dismissed
     return JobStatus.successful
 
 
 def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
-         scratch: Path) -> int:
+         scratch: Path, attempt: int) -> int:
     """The pipeline over a local copy of the job's input; the statistics name the user's
     files. The result and the statistics are put into the storage when both are complete.
     Returns the bytes the job now keeps."""
@@ -167,7 +187,7 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
         result,
         params,
         laz=job.laz,
-        progress=Progress(store, job_id),
+        progress=Progress(store, job_id, attempt),
         trajectory=trajectory,
     )
     if isinstance(stats.get("input"), dict):  # the user's file name, not input.las
@@ -181,13 +201,18 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
     return stored
 
 
-def _fail(store: Store, storage: Storage, job_id: str, message: str) -> JobStatus:
+def _fail(store: Store, storage: Storage, job_id: str, message: str,
+          attempt: int) -> JobStatus | None:
+    """Record the failure of delivery ``attempt``, unless the job is no longer its own."""
     prefix = layout.job_prefix(job_id)
-    if store.status(job_id) is JobStatus.dismissed:
+    job = store.get_job(job_id)
+    if job is not None and job.status is JobStatus.dismissed:
         # the error came from the dismissal itself (e.g. the API removed the objects)
         _quietly(storage.delete_prefix, prefix)
         store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
+    if job is None or job.status is not JobStatus.running or job.attempts != attempt:
+        return None  # queued again or started by another delivery since: its outcome counts
     for name in layout.RESULT_NAMES:
         _quietly(storage.delete, prefix + name)
     # the storage may be what failed: the job is recorded as failed all the same

@@ -43,6 +43,11 @@ jobs = sa.Table(
     sa.Column("laz", sa.Integer, nullable=False),
     sa.Column("attempts", sa.Integer, nullable=False, server_default=sa.text("0")),
     sa.Column("worker_pid", sa.Integer),
+    # the running delivery's last sign of life and its host (a vanished worker's job is re-queued)
+    sa.Column("heartbeat", sa.Text),
+    sa.Column("worker_host", sa.Text),
+    # times the job was put back in the queue after its worker vanished; older messages are stale
+    sa.Column("requeues", sa.Integer, nullable=False, server_default=sa.text("0")),
     sa.Column("stored_bytes", Bytes, nullable=False, server_default=sa.text("0")),
     # the user's n-th job: lists keep submission order whatever the hosts' clocks say
     sa.Column("seq", sa.Integer, nullable=False, server_default=sa.text("0")),

@@ -76,6 +76,14 @@ class Settings(BaseSettings):
     max_attempts: int = Field(
         2, ge=1, description="Deliveries of a job whose worker died before it is marked failed."
     )
+    heartbeat_interval_seconds: float = Field(
+        10.0, gt=0, description="How often a worker records that its running jobs are alive, "
+        "and looks for jobs of vanished workers."
+    )
+    stale_job_seconds: float = Field(
+        60.0, gt=0, description="A running job without a heartbeat for this long (or whose "
+        "worker process on this host is gone) is re-queued, or failed after MAX_ATTEMPTS."
+    )
     worker_concurrency: int = Field(1, ge=1, description="Worker processes `serve` starts.")
     api_host: str = Field("127.0.0.1", description="Address `serve` binds the API to.")
     api_port: int = Field(8000, ge=1, le=65535, description="Port `serve` binds the API to.")
@@ -113,6 +121,12 @@ class Settings(BaseSettings):
                 raise ValueError(
                     f"STORAGE_URL must look like s3://bucket/prefix, got {self.storage_url!r}"
                 )
+        if self.stale_job_seconds <= 2 * self.heartbeat_interval_seconds:
+            # one late heartbeat must not make a live job look abandoned
+            raise ValueError(
+                f"STALE_JOB_SECONDS ({self.stale_job_seconds}) must exceed twice "
+                f"HEARTBEAT_INTERVAL_SECONDS ({self.heartbeat_interval_seconds})"
+            )
         if self.visibility_timeout == 0:
             self.visibility_timeout = self.task_time_limit + 600
         if self.visibility_timeout <= self.task_time_limit:

@@ -7,7 +7,8 @@ is one short transaction. Keys are stored only as sha256 hashes. The schema is t
 (:func:`lidar_outliers.jobs.database.upgrade`).
 
 :meth:`Store.transition` is the one place that moves a job between states
-(accepted -> running -> successful / failed / dismissed) and records failures.
+(accepted -> running -> successful / failed / dismissed) and records failures;
+:meth:`Store.reclaim` alone moves a job of a vanished worker (running -> accepted or failed).
 
 Limits hold under concurrency: :meth:`Store.create_job` and :meth:`Store.add_upload` check the
 user's active jobs and stored bytes and insert the record in one transaction that first locks
@@ -80,8 +81,10 @@ FINAL = (JobStatus.successful, JobStatus.failed, JobStatus.dismissed)
 #: Allowed moves; anything else is refused (e.g. a late worker cannot resurrect a dismissed job).
 TRANSITIONS: dict[JobStatus, set[JobStatus]] = {
     JobStatus.accepted: {JobStatus.running, JobStatus.failed, JobStatus.dismissed},
-    # running -> running: a job re-delivered after its worker died starts again.
+    # running -> running: a job re-delivered after its worker died starts again;
+    # running -> accepted: its worker vanished and the job was put back in the queue.
     JobStatus.running: {
+        JobStatus.accepted,
         JobStatus.running,
         JobStatus.successful,
         JobStatus.failed,
@@ -172,6 +175,11 @@ class Job:
     attempts: int = 0
     worker_pid: int | None = None
     stored_bytes: int = 0
+    #: When the worker running the job last said it is alive, and that worker's host.
+    heartbeat: str | None = None
+    worker_host: str | None = None
+    #: Times the job was put back in the queue after its worker vanished.
+    requeues: int = 0
     #: The user's n-th job (lists are in this order).
     seq: int = 0
     #: Callback URIs (successUri, failedUri, inProgressUri) and the API's base_url, or None.
@@ -200,6 +208,9 @@ class Job:
             stored_bytes=int(row["stored_bytes"]),
             seq=row["seq"],
             subscriber=json.loads(row["subscriber"]) if row["subscriber"] else None,
+            heartbeat=row["heartbeat"],
+            worker_host=row["worker_host"],
+            requeues=row["requeues"],
         )
 
 
@@ -558,19 +569,24 @@ class Store:
         message: str | None = None,
         *,
         worker_pid: int | None = None,
+        worker_host: str | None = None,
         stored_bytes: int | None = None,
+        requeues: int | None = None,
     ) -> Job | None:
         """Move a job to ``status`` if the move is allowed; return the job as stored afterwards,
-        or None when the move is refused (unknown job, or already final such as dismissed)."""
+        or None when the move is refused (unknown job, already final such as dismissed, or,
+        with ``requeues``, re-queued since the delivery asking was sent)."""
         with self._transaction() as db:
             row = db.execute(
-                sa.select(jobs.c.status, jobs.c.attempts).where(jobs.c.id == job_id)
-                .with_for_update()
+                sa.select(jobs.c.status, jobs.c.attempts, jobs.c.requeues)
+                .where(jobs.c.id == job_id).with_for_update()
             ).mappings().first()
             if row is None:
                 return None
             current = JobStatus(row["status"])
             if status not in TRANSITIONS[current]:
+                return None
+            if requeues is not None and row["requeues"] != requeues:
                 return None
             sets: dict[str, Any] = {"status": status.value}
             if message is not None:
@@ -580,6 +596,8 @@ class Store:
                 sets["started"] = stamp
                 sets["attempts"] = row["attempts"] + 1
                 sets["worker_pid"] = worker_pid
+                sets["worker_host"] = worker_host
+                sets["heartbeat"] = stamp
                 sets["progress"] = 0
             elif status in FINAL:
                 sets["finished"] = stamp
@@ -592,18 +610,77 @@ class Store:
             updated = db.execute(sa.select(jobs).where(jobs.c.id == job_id)).mappings().one()
         return Job.from_row(updated)
 
-    def set_progress(self, job_id: str, percent: int, message: str) -> JobStatus | None:
-        """Record progress of a running job; return its status (the worker stops on dismissed)."""
+    def set_progress(self, job_id: str, percent: int, message: str,
+                     attempt: int | None = None) -> JobStatus | None:
+        """Record progress of a running job; return its status (the worker stops on dismissed).
+
+        With ``attempt`` (the delivery's number, :attr:`Job.attempts` when it started), only
+        that delivery may report: for an older one, whose job was re-queued or started again
+        elsewhere, nothing is written and the answer is None, as for an unknown job."""
+        where = [jobs.c.id == job_id, jobs.c.status == JobStatus.running.value]
+        if attempt is not None:
+            where.append(jobs.c.attempts == attempt)
         with self._transaction() as db:
             changed = db.execute(
-                sa.update(jobs)
-                .where(jobs.c.id == job_id, jobs.c.status == JobStatus.running.value)
+                sa.update(jobs).where(*where)
                 .values(progress=max(0, min(99, percent)), message=message)
             ).rowcount
             if changed:
                 return JobStatus.running
-            status = db.execute(sa.select(jobs.c.status).where(jobs.c.id == job_id)).scalar()
-        return JobStatus(status) if status is not None else None
+            row = db.execute(sa.select(jobs.c.status, jobs.c.attempts)
+                             .where(jobs.c.id == job_id)).first()
+        if row is None or (attempt is not None and row.attempts != attempt):
+            return None
+        return JobStatus(row.status)
+
+    def beat(self, job_ids: list[str], host: str) -> int:
+        """Heartbeat of the jobs a worker on ``host`` runs; returns how many were running."""
+        if not job_ids:
+            return 0
+        with self._transaction() as db:
+            return db.execute(
+                sa.update(jobs).where(jobs.c.id.in_(job_ids),
+                                      jobs.c.status == JobStatus.running.value,
+                                      jobs.c.worker_host == host)
+                .values(heartbeat=now())
+            ).rowcount
+
+    def running_jobs(self) -> list[Job]:
+        with self._read() as db:
+            rows = db.execute(
+                sa.select(jobs).where(jobs.c.status == JobStatus.running.value)
+            ).mappings().all()
+        return [Job.from_row(r) for r in rows]
+
+    def reclaim(self, job: Job, message: str, *, give_up: bool = False,
+                stored_bytes: int | None = None) -> Job | None:
+        """Take back a running job whose worker vanished, as ``job`` was read: put it back in
+        the queue (accepted, one more re-queue) or, with ``give_up``, fail it with ``message``.
+
+        Nothing happens (None) when the job changed since it was read: a heartbeat, a new
+        delivery or its end since means its worker, or another, has it."""
+        target = JobStatus.failed if give_up else JobStatus.accepted
+        assert target in TRANSITIONS[JobStatus.running]
+        sets: dict[str, Any] = {"status": target.value, "message": message, "worker_pid": None}
+        if give_up:
+            sets["finished"] = now()
+        else:
+            sets.update(requeues=job.requeues + 1, progress=0)
+        if stored_bytes is not None:
+            sets["stored_bytes"] = stored_bytes
+        heartbeat = (jobs.c.heartbeat.is_(None) if job.heartbeat is None
+                     else jobs.c.heartbeat == job.heartbeat)
+        with self._transaction() as db:
+            changed = db.execute(
+                sa.update(jobs).where(
+                    jobs.c.id == job.id, jobs.c.status == JobStatus.running.value,
+                    jobs.c.attempts == job.attempts, jobs.c.requeues == job.requeues, heartbeat,
+                ).values(**sets)
+            ).rowcount
+            if not changed:
+                return None
+            updated = db.execute(sa.select(jobs).where(jobs.c.id == job.id)).mappings().one()
+        return Job.from_row(updated)
 
     def annotate(self, job_id: str, message: str) -> None:
         """Replace a job's message without changing its state (e.g. how a cancel ended)."""

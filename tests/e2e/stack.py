@@ -146,6 +146,9 @@ class Stack:
                         PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT),
                         **{k.upper(): str(v) for k, v in settings.items()})
         self.env.pop("PYTEST_CURRENT_TEST", None)
+        # this checkout's code in every process, wherever the console script's install points
+        self.env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT),
+                                                                os.environ.get("PYTHONPATH")]))
         self.workers: list[subprocess.Popen] = []
         self.api: subprocess.Popen | None = None
         self.port = 0
