@@ -26,10 +26,11 @@ SLOW = {"pipeline": [{"detector": "temporal", "sigma": 0.01}, {"detector": "patc
 @pytest.fixture(scope="module")
 def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
           compiled_detectors: None) -> Iterator[Stack]:
-    # quick heartbeats and sweeps, so that a job of a vanished worker is queued again at once
+    # quick heartbeats and sweeps, so that a job of a vanished worker is queued again at once;
+    # a time limit with room for a loaded machine (the redelivery is the sweep's, not Redis's)
     with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url(), workers=2,
-                       max_active_jobs_per_user=10, task_time_limit=60,
-                       visibility_timeout=65, heartbeat_interval_seconds=1,
+                       max_active_jobs_per_user=10, task_time_limit=300,
+                       visibility_timeout=320, heartbeat_interval_seconds=1,
                        stale_job_seconds=5) as s:
         yield s
 
