@@ -22,6 +22,9 @@ PROBLEMS: dict[str, tuple[str, str]] = {
     "invalid-request": ("Invalid request", "The request body or query is malformed."),
     "unauthorized": ("Missing or wrong API key", "Send `Authorization: Bearer <key>`; "
                      "`lidar-outliers users add NAME` creates a key."),
+    "empty-file": ("Empty file", "The file sent has no bytes; send the LAS/LAZ file itself."),
+    "insufficient-storage": ("Insufficient storage", "The server's disk is full; try again "
+                             "later or ask its operator to free space."),
     "file-too-large": ("File too large", "Upload a smaller file or raise MAX_UPLOAD_BYTES."),
     "storage-quota-exceeded": ("Storage quota exceeded", "DELETE finished jobs to free space."),
     "unsupported-media-type": ("Not a LAS/LAZ file", "Send a LAS 1.0-1.4 or LAZ file."),

@@ -50,6 +50,10 @@ def too_large(limit: int, quota: bool) -> Problem:
                    f"the file is larger than the limit of {limit} bytes (MAX_UPLOAD_BYTES)")
 
 
+def empty_file(detail: str) -> Problem:
+    return Problem(400, "empty-file", detail)
+
+
 async def _drain(stream: AsyncIterator[bytes]) -> None:
     seen = 0
     async for chunk in stream:
@@ -96,8 +100,8 @@ async def receive_raw(
         raise
     if size == 0:
         path.unlink(missing_ok=True)
-        raise Problem(400, "invalid-request", "the request body is empty; send the LAS/LAZ file "
-                      "as the body")
+        raise empty_file(f"{filename}: the file is empty (0 bytes); send the LAS/LAZ file as "
+                         "the body (curl --data-binary @cloud.las)")
     return Received(path=path, filename=filename, size=size, fields={})
 
 
@@ -218,11 +222,16 @@ async def receive_multipart(
     except BaseException:
         reader.cleanup()
         raise
-    if reader.path is None or reader.size == 0:
+    if reader.path is None:
         reader.cleanup()
         raise Problem(400, "invalid-request",
                       "no file: send the LAS/LAZ cloud in a multipart part named `file` "
                       "(curl -F file=@cloud.las)")
+    if reader.size == 0:
+        reader.cleanup()
+        name = os.path.basename(reader.filename) or "file"
+        raise empty_file(f"{name}: the file is empty (0 bytes); the part `file` must hold the "
+                         "LAS/LAZ cloud")
     if reader.trajectory is not None and reader.trajectory_size == 0:
         reader.cleanup()
         raise Problem(422, "invalid-parameter", "trajectory: the part `trajectory` is empty",

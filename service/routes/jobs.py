@@ -13,6 +13,9 @@ from service.jobs import status_document
 
 router = APIRouter(tags=["jobs"])
 
+#: Largest list offset (a database integer holds more; nobody has this many jobs).
+MAX_OFFSET = 10**9
+
 MEDIA = {".las": "application/vnd.las", ".laz": "application/vnd.laszip"}
 #: Downloads answer HEAD too (size and validators without the body) and honour Range.
 DOWNLOAD = {"methods": ["GET", "HEAD"], "response_class": Response, "responses": {
@@ -26,7 +29,7 @@ def list_jobs(
     service: ServiceDep,
     user: UserDep,
     limit: Annotated[int, Query(ge=1, le=1000)] = 50,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
 ) -> dict[str, Any]:
     """The caller's jobs, newest first."""
     jobs, total = service.list_jobs(user, limit, offset)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from fastapi import APIRouter, Request
@@ -11,6 +10,7 @@ from fastapi.responses import JSONResponse
 
 from service.deps import ServiceDep, UserDep
 from service.jobs import status_document
+from service.json_body import parse_json
 from service.problems import Problem
 from service.processes import (
     TRAJECTORY_INPUT,
@@ -74,12 +74,8 @@ def get_process(process_id: str) -> dict[str, Any]:
     return describe(process_id)
 
 
-def _json_inputs(text: str) -> Any:
-    try:
-        return json.loads(text) if text.strip() else {}
-    except json.JSONDecodeError as exc:
-        raise Problem(400, "invalid-parameter", f"inputs: not valid JSON ({exc})",
-                      errors=[{"parameter": "inputs", "message": "not valid JSON"}]) from None
+def _json_inputs(text: str, root: str) -> Any:
+    return parse_json(text, root) if text.strip() else {}
 
 
 @router.post("/processes/{process_id}/execution", status_code=201, openapi_extra=EXECUTE_BODY)
@@ -97,8 +93,8 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
                                            service.incoming_dir, limit, quota)
         assert received.path is not None
         try:
-            params, cloud = service.parse_inputs(process_id,
-                                                 _json_inputs(received.fields.get("inputs", "")))
+            inputs = _json_inputs(received.fields.get("inputs", ""), "inputs")
+            params, cloud = service.parse_inputs(process_id, inputs)
             if cloud is not None:
                 raise Problem(422, "invalid-parameter", "cloud: give the file in part `file` "
                               "or an href in a JSON request, not both")
@@ -112,7 +108,7 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         body = await request.body()
         if len(body) > MAX_JSON_BYTES:
             raise Problem(413, "file-too-large", "a JSON execute request is at most 1 MiB")
-        document = _json_inputs(body.decode("utf-8", "replace"))
+        document = _json_inputs(body.decode("utf-8", "replace"), "")
         if not isinstance(document, dict) or not isinstance(document.get("inputs", {}), dict):
             raise Problem(400, "invalid-request", 'send {"inputs": {"cloud": {"href": '
                           '"/uploads/<id>"}, ...}}')
