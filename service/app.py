@@ -18,9 +18,12 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from lidar_outliers.jobs.settings import Settings, get_settings
 from lidar_outliers.jobs.store import Store
+from service import openapi
+from service.headers import SecurityHeaders
+from service.health import HealthMonitor
 from service.jobs import JobService
 from service.problems import MEDIA_TYPE, Problem
-from service.routes import jobs, pages, processes, system, uploads
+from service.routes import docs, jobs, pages, processes, system, uploads
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +68,16 @@ def _on_crash(settings: Settings):
     return handler
 
 
+async def _check_health_forever(monitor: HealthMonitor) -> None:
+    """Keep /health's report fresh so that requests do not wait for a worker ping."""
+    while True:
+        try:
+            await asyncio.to_thread(monitor.refresh)
+        except Exception:
+            log.exception("health check failed")
+        await asyncio.sleep(monitor.interval)
+
+
 async def _cleanup_forever(service: JobService) -> None:
     while True:
         try:
@@ -81,11 +94,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        task = asyncio.create_task(_cleanup_forever(app.state.service))
+        tasks = [asyncio.create_task(_cleanup_forever(app.state.service)),
+                 asyncio.create_task(_check_health_forever(app.state.health))]
         yield
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        for task in tasks:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
 
     app = FastAPI(
         title="lidar-outliers",
@@ -93,15 +108,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         description="Outlier detection for mobile LiDAR point clouds as OGC API - Processes "
         "jobs. Authenticate with `Authorization: Bearer <key>`.",
         lifespan=lifespan,
+        docs_url=None,  # served from installed files by service.routes.docs
+        redoc_url=None,
     )
+    app.openapi = lambda: openapi.document(app)  # type: ignore[method-assign]
+    app.add_middleware(SecurityHeaders)
     app.state.settings = settings
     # opening the store migrates the database's schema (safely when several APIs start at once)
-    app.state.service = JobService(settings, Store(settings.database_url))
+    service = JobService(settings, Store(settings.database_url))
+    app.state.service = service
+    app.state.health = HealthMonitor(settings, service.store, service.storage)
     app.add_exception_handler(Problem, _on_problem)
     app.add_exception_handler(RequestValidationError, _on_validation)
     app.add_exception_handler(StarletteHTTPException, _on_http)
     app.add_exception_handler(Exception, _on_crash(settings))
-    for module in (system, processes, uploads, jobs, pages):
+    for module in (system, processes, uploads, jobs, pages, docs):
         app.include_router(module.router)
     app.mount("/app/static", pages.static_files(), name="app-static")
+    app.mount(docs.ASSETS_URL, docs.static_files(), name="docs-static")
     return app
