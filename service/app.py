@@ -16,13 +16,14 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from lidar_outliers.jobs.diskspace import is_disk_full
 from lidar_outliers.jobs.settings import Settings, get_settings
 from lidar_outliers.jobs.store import Store
 from service import openapi
 from service.headers import SecurityHeaders
 from service.health import HealthMonitor
 from service.jobs import JobService
-from service.problems import MEDIA_TYPE, Problem
+from service.problems import MEDIA_TYPE, Problem, insufficient_storage
 from service.routes import docs, jobs, pages, processes, system, uploads
 
 log = logging.getLogger(__name__)
@@ -60,6 +61,9 @@ async def _on_http(_: Request, exc: Exception) -> JSONResponse:
 
 def _on_crash(settings: Settings):
     async def handler(request: Request, exc: Exception) -> JSONResponse:
+        if is_disk_full(exc):  # e.g. the database could not grow: nothing was committed
+            log.warning("disk full on %s %s: %s", request.method, request.url.path, exc)
+            return problem_response(insufficient_storage(exc))
         log.exception("unhandled error on %s %s", request.method, request.url.path)
         detail = "internal error" if settings.environment == "prod" else (
             f"internal error: {type(exc).__name__}: {exc}")

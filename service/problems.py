@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from lidar_outliers.jobs.diskspace import DiskFull, is_disk_full
+
 OGC = "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
 MEDIA_TYPE = "application/problem+json"
 
@@ -76,6 +78,15 @@ class Problem(Exception):
         }
 
 
+def insufficient_storage(exc: BaseException) -> Problem:
+    """507 for a disk that is full (or would be with the request's file)."""
+    detail = str(exc) if isinstance(exc, DiskFull) else f"the server's disk is full: {exc}"
+    return Problem(507, "insufficient-storage", detail)
+
+
 def storage_unavailable(exc: Exception) -> Problem:
-    """503 for a storage that failed (the API goes on; the client may retry)."""
+    """503 for a storage that failed (the API goes on; the client may retry); 507 when what
+    failed is a full disk."""
+    if is_disk_full(exc):
+        return insufficient_storage(exc)
     return Problem(503, "service-unavailable", f"the file storage is not usable: {exc}")

@@ -16,7 +16,8 @@ from typing import BinaryIO
 
 from python_multipart.multipart import MultipartParser, parse_options_header
 
-from service.problems import Problem
+from lidar_outliers.jobs.diskspace import is_disk_full
+from service.problems import Problem, insufficient_storage
 
 #: After a 413, read at most this much more of the body before giving up on the connection.
 DRAIN_LIMIT = 64 * 1024**2
@@ -62,6 +63,11 @@ async def _drain(stream: AsyncIterator[bytes]) -> None:
             return
 
 
+def declared_size(content_length: str | None) -> int:
+    """The request's Content-Length, 0 when absent (or not a number)."""
+    return int(content_length) if content_length and content_length.isdigit() else 0
+
+
 def refuse_declared_size(content_length: str | None, limit: int, quota: bool,
                          overhead: int) -> None:
     """413 at once when the declared body cannot fit, before a byte of it is read."""
@@ -95,6 +101,12 @@ async def receive_raw(
         path.unlink(missing_ok=True)
         await _drain(stream)
         raise
+    except OSError as exc:
+        path.unlink(missing_ok=True)
+        if not is_disk_full(exc):
+            raise
+        await _drain(stream)
+        raise insufficient_storage(exc) from None
     except BaseException:
         path.unlink(missing_ok=True)
         raise
@@ -218,6 +230,9 @@ async def receive_multipart(
         raise
     except Exception as exc:
         reader.cleanup()
+        if is_disk_full(exc):
+            await _drain(stream)
+            raise insufficient_storage(exc) from None
         raise Problem(400, "invalid-request", f"malformed multipart body: {exc}") from None
     except BaseException:
         reader.cleanup()

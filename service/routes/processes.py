@@ -19,7 +19,12 @@ from service.processes import (
     process_ids,
     summary,
 )
-from service.uploads import MULTIPART_OVERHEAD, receive_multipart, refuse_declared_size
+from service.uploads import (
+    MULTIPART_OVERHEAD,
+    declared_size,
+    receive_multipart,
+    refuse_declared_size,
+)
 
 router = APIRouter(tags=["processes"])
 
@@ -89,6 +94,9 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         limit, quota = await run_in_threadpool(service.upload_limit, user)
         refuse_declared_size(request.headers.get("content-length"), limit, quota,
                              MULTIPART_OVERHEAD)
+        # 507 before a byte is read when the disk cannot take the file and its result
+        await run_in_threadpool(service.check_room,
+                                declared_size(request.headers.get("content-length")))
         received = await receive_multipart(request.stream(), content_type,
                                            service.incoming_dir, limit, quota)
         assert received.path is not None
