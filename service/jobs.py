@@ -303,6 +303,18 @@ class JobService:
         except StorageError:
             log.exception("could not remove the files of job %s", job.id)
 
+    def poll(self, authorization: str | None, job_id: str) -> Job:
+        """The caller's job ``job_id`` by key, in one database query (401, 404 otherwise)."""
+        scheme, _, key = (authorization or "").partition(" ")
+        if scheme.lower() != "bearer" or not key.strip():
+            self.authenticate(authorization)  # raises the 401 of a missing key
+        user, job = self.store.job_for_key(key.strip(), job_id)
+        if user is None:
+            self.authenticate(authorization)  # raises the 401 of a wrong key
+        if job is None:
+            raise Problem(404, "no-such-job", f"no job {job_id!r} of yours")
+        return job
+
     def get(self, user: User, job_id: str) -> Job:
         job = self.store.get_job(job_id)
         if job is None or job.user_id != user.id:

@@ -143,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
         supervisor.start("worker", worker, env)
         api = supervisor.start("api", [sys.executable, "-m", "uvicorn", "--factory",
                                        "service.app:create_app", "--host", host,
-                                       "--port", str(port)], env)
+                                       "--port", str(port),
+                                       "--workers", str(settings.api_workers)], env)
         wait_for_port(port, api, "the API (uvicorn)", START_TIMEOUT)
         _banner(host, port, settings.data_dir, env["REDIS_URL"], key)
         while not supervisor.stopping:

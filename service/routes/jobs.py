@@ -5,9 +5,11 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
 
 from lidar_outliers import view
-from service.deps import ServiceDep, UserDep
+from service.deps import BearerDep, ServiceDep, UserDep
 from service.downloads import object_response
 from service.jobs import status_document
 
@@ -46,8 +48,11 @@ def list_jobs(
 
 
 @router.get("/jobs/{job_id}")
-def get_job(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, Any]:
-    return status_document(service.get(user, job_id))
+async def get_job(job_id: str, request: Request, service: ServiceDep,
+                  _key: BearerDep) -> JSONResponse:
+    """The job's status document (what clients poll: one database query, one thread hop)."""
+    job = await run_in_threadpool(service.poll, request.headers.get("authorization"), job_id)
+    return JSONResponse(status_document(job))
 
 
 @router.delete("/jobs/{job_id}")
