@@ -14,7 +14,9 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from lidar_outliers.jobs.diskspace import is_disk_full
 from lidar_outliers.jobs.settings import Settings, get_settings
@@ -50,13 +52,28 @@ async def _on_validation(_: Request, exc: Exception) -> JSONResponse:
     return problem_response(Problem(422, "invalid-parameter", detail, errors=errors))
 
 
-async def _on_http(_: Request, exc: Exception) -> JSONResponse:
+def _allowed_methods(request: Request) -> list[str]:
+    """Methods of every route of this path (Starlette's 405 names those of one route only)."""
+    methods: set[str] = set()
+    for route in request.app.state.api_routes:
+        if isinstance(route, APIRoute) and route.matches(request.scope)[0] is not Match.NONE:
+            methods |= route.methods or set()
+    return sorted(methods)
+
+
+async def _on_http(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     slug = {404: "not-found", 405: "method-not-allowed"}.get(exc.status_code, "invalid-request")
     detail = str(exc.detail)
+    headers = dict(exc.headers or {})
     if exc.status_code == 404:
         detail = "no such route; GET /docs lists the routes"
-    return problem_response(Problem(exc.status_code, slug, detail, headers=exc.headers))
+    elif exc.status_code == 405:
+        allowed = _allowed_methods(request)
+        if allowed:
+            headers["Allow"] = ", ".join(allowed)
+            detail = f"{request.method} is not allowed here; allowed: {headers['Allow']}"
+    return problem_response(Problem(exc.status_code, slug, detail, headers=headers))
 
 
 def _on_crash(settings: Settings):
@@ -126,8 +143,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _on_validation)
     app.add_exception_handler(StarletteHTTPException, _on_http)
     app.add_exception_handler(Exception, _on_crash(settings))
-    for module in (system, processes, uploads, jobs, pages, docs):
+    modules = (system, processes, uploads, jobs, pages, docs)
+    for module in modules:
         app.include_router(module.router)
+    app.state.api_routes = [route for module in modules for route in module.router.routes]
     app.mount("/app/static", pages.static_files(), name="app-static")
     app.mount(docs.ASSETS_URL, docs.static_files(), name="docs-static")
     return app
