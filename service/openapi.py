@@ -14,7 +14,8 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service.problems import MEDIA_TYPE
+from service.problems import MEDIA_TYPE, PROBLEMS
+from service.processes import process_ids
 
 PROBLEM_SCHEMA: dict[str, Any] = {
     "type": "object",
@@ -80,6 +81,14 @@ def _statuses(method: str, path: str, operation: dict[str, Any]) -> set[int]:
     return statuses
 
 
+def _name_the_values(operation: dict[str, Any]) -> None:
+    """Path parameters that take one of a known list get it as their enum."""
+    known = {"process_id": process_ids(), "slug": sorted(PROBLEMS)}
+    for parameter in operation.get("parameters", []):
+        if parameter.get("in") == "path" and parameter["name"] in known:
+            parameter["schema"]["enum"] = known[parameter["name"]]
+
+
 def document(app: FastAPI) -> dict[str, Any]:
     """The app's OpenAPI document, made once."""
     if app.openapi_schema:
@@ -91,6 +100,7 @@ def document(app: FastAPI) -> dict[str, Any]:
     schema.setdefault("components", {}).setdefault("schemas", {})["Problem"] = PROBLEM_SCHEMA
     for path, operations in schema["paths"].items():
         for method, operation in operations.items():
+            _name_the_values(operation)
             if method == "head":
                 operation["operationId"] = operation["operationId"].removesuffix("_get") + "_head"
             responses = operation.setdefault("responses", {})

@@ -41,14 +41,15 @@ EXECUTE_BODY = {
                     "properties": {
                         "file": {"type": "string", "format": "binary",
                                  "description": "The LAS or LAZ cloud."},
-                        "inputs": {"type": "string",
+                        "inputs": {"type": "object",
                                    "description": "The process inputs as JSON, e.g. "
                                    '{"n1": 5}; GET /processes/{id} gives the schema.'},
                         "trajectory": {"type": "string", "format": "binary",
                                        "description": "Optional trajectory: text lines "
                                        "'time x y z' (used by the transient detector)."},
                     },
-                }
+                },
+                "encoding": {"inputs": {"contentType": "application/json"}},
             },
             "application/json": {
                 "schema": {
