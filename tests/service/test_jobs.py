@@ -186,7 +186,7 @@ def _part(tmp_path: Path, settings: Settings) -> Path:
 
 def run_cli(tmp_path: Path, *args: str, **settings: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, DATA_DIR=str(tmp_path / "data"), **settings)
-    return subprocess.run([str(Path(sys.executable).parent / "lidar-outliers"), *args],
+    return subprocess.run([sys.executable, "-m", "lidar_outliers", *args],  # this checkout
                           env=env, cwd=ROOT, capture_output=True, text=True, timeout=60)
 
 
