@@ -4,8 +4,10 @@ Usage::
 
     # against a running service (one of your jobs is polled; one is submitted if you have none)
     .venv/bin/python benchmarks/bench_load.py --url http://127.0.0.1:8000 --key lo_...
-    # or on a stack of its own: redis-server and the API (API_WORKERS processes), no worker
+    # or on a stack of its own: redis-server and the API (--api-workers processes), and with
+    # --worker a Celery worker (without one, /health answers 503 after a fresh ping)
     .venv/bin/python benchmarks/bench_load.py [--rate 200] [--seconds 20] [--api-workers 2]
+        [--worker]
 
 Requests are sent open-loop: the i-th one at ``start + i / rate`` whatever the answers before
 it, so a slow server shows as latency instead of as a lower request rate. Latency is measured
@@ -20,6 +22,7 @@ import argparse
 import asyncio
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -72,8 +75,9 @@ def cpu_seconds(pid: int) -> float:
 
 
 @contextmanager
-def own_stack(api_workers: int) -> Iterator[tuple[str, str, int]]:
-    """redis-server and the API on a temporary DATA_DIR; yields (base URL, key, API pid)."""
+def own_stack(api_workers: int, worker: bool) -> Iterator[tuple[str, str, int]]:
+    """redis-server, the API and (with ``worker``) a Celery worker on a temporary DATA_DIR;
+    yields (base URL, key, API pid)."""
     folder = Path(tempfile.mkdtemp(prefix="bench-load-"))
     procs: list[subprocess.Popen] = []
     try:
@@ -96,6 +100,17 @@ def own_stack(api_workers: int) -> Iterator[tuple[str, str, int]]:
              "--log-level", "warning", "--no-access-log"],
             env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
         _wait_port(api_port, procs[-1], "the API")
+        if worker:  # /health then answers 200 from its cached check
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
+                 "--concurrency=1", "--loglevel=WARNING", "-n", f"bench-{os.getpid()}@%h"],
+                env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                start_new_session=True))
+            deadline = time.monotonic() + 300
+            while httpx.get(f"http://127.0.0.1:{api_port}/health").status_code != 200:
+                if time.monotonic() > deadline or procs[-1].poll() is not None:
+                    raise RuntimeError("the worker did not answer /health's ping")
+                time.sleep(1)
         yield f"http://127.0.0.1:{api_port}", key, procs[-1].pid
     finally:
         for proc in reversed(procs):
@@ -186,13 +201,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="how long (20)")
     parser.add_argument("--api-workers", type=int, default=2,
                         help="API processes of the own stack (2)")
+    parser.add_argument("--worker", action="store_true",
+                        help="start a Celery worker in the own stack (polls see the job run)")
     args = parser.parse_args(argv)
+    # SIGTERM (e.g. from `timeout`) unwinds like Ctrl-C, so the own stack is stopped
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     if args.url:
         if not args.key:
             parser.error("--url needs --key")
         report(args.url.rstrip("/"), args.key, args.rate, args.seconds)
         return 0
-    with own_stack(args.api_workers) as (url, key, pid):
+    with own_stack(args.api_workers, args.worker) as (url, key, pid):
         report(url, key, args.rate, args.seconds, pid)
     return 0
 
