@@ -2,9 +2,9 @@
 
 A worker ping waits its whole timeout for replies, so checking on every request would make
 ``/health`` slow and would send a control message per request to every worker. Instead the
-parts are checked at most once every ``HEALTH_INTERVAL_SECONDS`` by the API's background task,
-and on request when the last check is older than twice that, or older than a second and found
-something down.
+parts are checked every ``HEALTH_INTERVAL_SECONDS`` by the API's background task, and on
+request when the last check is older than twice that or found something down (so a recovery
+shows at once; concurrent requests then share one check).
 
 Two reports come out of one check: the public one (component states only: no host names, URLs
 or exception text) for callers without a key, and the detailed one for callers with a key.
@@ -23,10 +23,6 @@ from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import Storage, StorageError
 from lidar_outliers.jobs.store import Store
 from service import queue
-
-#: A report that found something down is re-checked on request after this long (a recovery
-#: shows at once; an outage does not make every request wait for a ping).
-BAD_REPORT_SECONDS = 1.0
 
 
 @dataclass
@@ -127,8 +123,6 @@ class HealthMonitor:
     def report(self) -> Report:
         """The cached report when it is recent and good; a new check otherwise."""
         last = self._last
-        if last is not None:
-            age = time.monotonic() - last.checked
-            if age < (2 * self.interval if last.ok else min(self.interval, BAD_REPORT_SECONDS)):
-                return last
+        if last is not None and last.ok and time.monotonic() - last.checked < 2 * self.interval:
+            return last
         return self.refresh()
