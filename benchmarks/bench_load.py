@@ -100,6 +100,7 @@ def own_stack(api_workers: int, worker: bool) -> Iterator[tuple[str, str, int]]:
              "--log-level", "warning", "--no-access-log"],
             env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
         _wait_port(api_port, procs[-1], "the API")
+        api_pid = procs[-1].pid
         if worker:  # /health then answers 200 from its cached check
             procs.append(subprocess.Popen(
                 [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
@@ -111,7 +112,7 @@ def own_stack(api_workers: int, worker: bool) -> Iterator[tuple[str, str, int]]:
                 if time.monotonic() > deadline or procs[-1].poll() is not None:
                     raise RuntimeError("the worker did not answer /health's ping")
                 time.sleep(1)
-        yield f"http://127.0.0.1:{api_port}", key, procs[-1].pid
+        yield f"http://127.0.0.1:{api_port}", key, api_pid
     finally:
         for proc in reversed(procs):
             try:
