@@ -178,7 +178,9 @@ def report(base_url: str, key: str, rate: float, seconds: float,
             client.get("/health")
             health.append(time.perf_counter() - t)
     cpu_before = cpu_seconds(api_pid) if api_pid else 0.0
+    client_before = time.process_time()
     latencies, statuses, took = asyncio.run(poll(base_url, key, job_id, rate, seconds))
+    client_cpu = time.process_time() - client_before
     cpu = cpu_seconds(api_pid) - cpu_before if api_pid else None
     ms = np.asarray(latencies) * 1000
     ok = statuses.get(200, 0)
@@ -188,8 +190,12 @@ def report(base_url: str, key: str, rate: float, seconds: float,
     if len(ms):
         print(f"  latency ms: p50 {np.percentile(ms, 50):.1f}  p99 {np.percentile(ms, 99):.1f}"
               f"  max {ms.max():.1f}")
-    if cpu is not None and ok:
-        print(f"  API CPU per poll: {cpu / sum(statuses.values()) * 1000:.2f} ms")
+    sent = sum(statuses.values())
+    if cpu is not None and sent:
+        print(f"  API CPU per poll: {cpu / sent * 1000:.2f} ms")
+    if sent:  # the client's own cost: on a busy machine it may be what limits the rate
+        print(f"  client CPU per poll: {client_cpu / sent * 1000:.2f} ms; machine load average "
+              f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     print(f"  /health ms (10 calls, no load): median {np.median(health) * 1000:.1f}  "
           f"max {max(health) * 1000:.1f}")
 
