@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 from lidar_outliers import lasio, view
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import layout
+from lidar_outliers.jobs.diskspace import DiskFull, check_room, is_disk_full
 from lidar_outliers.jobs.documents import status_document  # noqa: F401 - routes import it here
 from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import (
@@ -44,7 +45,7 @@ from lidar_outliers.params import PipelineParams
 from lidar_outliers.tools.plot import render_preview
 from lidar_outliers.trajectory import describe_trajectory, read_trajectory
 from service import queue
-from service.problems import Problem, storage_unavailable
+from service.problems import Problem, insufficient_storage, storage_unavailable
 from service.processes import CLOUD_INPUT, TRAJECTORY_INPUT, preflight, resolve_inputs
 from service.uploads import too_large
 
@@ -123,6 +124,15 @@ class JobService:
     def incoming_dir(self) -> Path:
         return self.settings.incoming_dir
 
+    def check_room(self, incoming: int, *, received: bool = False) -> None:
+        """507 unless DATA_DIR's disk keeps MIN_FREE_BYTES free after ``incoming`` bytes and a
+        result as large (``received``: the file is on the disk already)."""
+        try:
+            check_room(self.settings.data_dir, incoming, self.settings.min_free_bytes,
+                       received=received)
+        except DiskFull as exc:
+            raise insufficient_storage(exc) from None
+
     # ---- uploads -----------------------------------------------------------------------------
 
     def store_upload(self, user: User, part: Path, name: str, kind: str = "cloud") -> Upload:
@@ -136,6 +146,7 @@ class JobService:
             else:
                 facts = las_facts(part, name)
                 suffix = ".laz" if facts.get("compressed") else ".las"
+            self.check_room(part.stat().st_size, received=True)
             upload_id = uuid.uuid4().hex
             key = layout.upload_key(user.id, upload_id, suffix)
             try:
@@ -250,6 +261,7 @@ class JobService:
             laz = bool(facts.get("compressed"))
             size = sum(p.bytes if isinstance(p, Upload) else p.stat().st_size
                        for p in (source, trajectory) if p is not None)
+            self.check_room(size, received=True)  # room for the result
             try:
                 job = self.store.create_job(
                     user.id, process_id, params, facts, laz, stored_bytes=size,
@@ -269,7 +281,7 @@ class JobService:
                 self.enqueue(job.id, min(job.active_before, 9))
             except Exception as exc:
                 self._abandon(job, exc)
-                if isinstance(exc, StorageError):
+                if isinstance(exc, StorageError) or is_disk_full(exc):
                     raise storage_unavailable(exc) from None
                 raise Problem(503, "service-unavailable",
                               f"the job queue (Redis) is not reachable: {exc}") from None
@@ -286,13 +298,26 @@ class JobService:
 
     def _abandon(self, job: Job, exc: Exception) -> None:
         """A recorded job that could not be stored or queued: failed, its bytes released."""
-        what = "store the input" if isinstance(exc, StorageError) else "queue the job"
+        stored = isinstance(exc, StorageError) or is_disk_full(exc)
+        what = "store the input" if stored else "queue the job"
         self.store.transition(job.id, JobStatus.failed, f"could not {what}: {exc}",
                               stored_bytes=0)
         try:
             self.storage.delete_prefix(layout.job_prefix(job.id))
         except StorageError:
             log.exception("could not remove the files of job %s", job.id)
+
+    def poll(self, authorization: str | None, job_id: str) -> Job:
+        """The caller's job ``job_id`` by key, in one database query (401, 404 otherwise)."""
+        scheme, _, key = (authorization or "").partition(" ")
+        if scheme.lower() != "bearer" or not key.strip():
+            self.authenticate(authorization)  # raises the 401 of a missing key
+        user, job = self.store.job_for_key(key.strip(), job_id)
+        if user is None:
+            self.authenticate(authorization)  # raises the 401 of a wrong key
+        if job is None:
+            raise Problem(404, "no-such-job", f"no job {job_id!r} of yours")
+        return job
 
     def get(self, user: User, job_id: str) -> Job:
         job = self.store.get_job(job_id)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from lidar_outliers.jobs.diskspace import DiskFull, is_disk_full
+
 OGC = "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
 MEDIA_TYPE = "application/problem+json"
 
@@ -22,6 +24,9 @@ PROBLEMS: dict[str, tuple[str, str]] = {
     "invalid-request": ("Invalid request", "The request body or query is malformed."),
     "unauthorized": ("Missing or wrong API key", "Send `Authorization: Bearer <key>`; "
                      "`lidar-outliers users add NAME` creates a key."),
+    "empty-file": ("Empty file", "The file sent has no bytes; send the LAS/LAZ file itself."),
+    "insufficient-storage": ("Insufficient storage", "The server's disk is full; try again "
+                             "later or ask its operator to free space."),
     "file-too-large": ("File too large", "Upload a smaller file or raise MAX_UPLOAD_BYTES."),
     "storage-quota-exceeded": ("Storage quota exceeded", "DELETE finished jobs to free space."),
     "unsupported-media-type": ("Not a LAS/LAZ file", "Send a LAS 1.0-1.4 or LAZ file."),
@@ -89,6 +94,15 @@ class Problem(Exception):
         }
 
 
+def insufficient_storage(exc: BaseException) -> Problem:
+    """507 for a disk that is full (or would be with the request's file)."""
+    detail = str(exc) if isinstance(exc, DiskFull) else f"the server's disk is full: {exc}"
+    return Problem(507, "insufficient-storage", detail)
+
+
 def storage_unavailable(exc: Exception) -> Problem:
-    """503 for a storage that failed (the API goes on; the client may retry)."""
+    """503 for a storage that failed (the API goes on; the client may retry); 507 when what
+    failed is a full disk."""
+    if is_disk_full(exc):
+        return insufficient_storage(exc)
     return Problem(503, "service-unavailable", f"the file storage is not usable: {exc}")

@@ -219,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
             "-n", f"worker-{os.getpid()}@%h"], priority=20))
         programs.append(Program("api", [
             sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app",
-            "--host", host, "--port", str(port)], priority=30))
+            "--host", host, "--port", str(port),
+            "--workers", str(settings.api_workers)], priority=30))
         proc = supervisor.start(programs)
         if redis_port is not None:
             wait_for_port(redis_port, proc, "redis-server", START_TIMEOUT)

@@ -21,6 +21,7 @@ from lidar_outliers.atomic import write_json_atomic
 from lidar_outliers.errors import CancelledError, LidarOutliersError
 from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.callbacks import FAILED, IN_PROGRESS, SUCCESS, deliver
+from lidar_outliers.jobs.diskspace import is_disk_full
 from lidar_outliers.jobs.documents import results_document, status_document
 from lidar_outliers.jobs.janitor import died_message
 from lidar_outliers.jobs.settings import Settings
@@ -143,7 +144,8 @@ def _execute(
             store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
     except LidarOutliersError as exc:
-        return _fail(store, storage, job_id, str(exc), started.attempts)
+        return _fail(store, storage, job_id, _disk_full_message(exc) or str(exc),
+                     started.attempts)
     except MemoryError:
         return _fail(store, storage, job_id, "the job ran out of memory", started.attempts)
     except time_limit_errors:
@@ -151,6 +153,9 @@ def _execute(
                      f"the job exceeded the time limit of {settings.task_time_limit} s",
                      started.attempts)
     except Exception as exc:
+        if is_disk_full(exc):
+            return _fail(store, storage, job_id, _disk_full_message(exc) or str(exc),
+                         started.attempts)
         log.exception("job %s failed", job_id)
         return _fail(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}",
                      started.attempts)
@@ -199,6 +204,15 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
     stored += storage.put_file(layout.result_key(job_id, job.laz), result, move=True)
     stored += storage.put_file(layout.statistics_key(job_id), statistics, move=True)
     return stored
+
+
+def _disk_full_message(exc: BaseException) -> str | None:
+    """The failure message of a job whose files did not fit on the disk (None otherwise)."""
+    if not is_disk_full(exc):
+        return None
+    log.warning("job failed: disk full: %s", exc)
+    return f"the server's disk is full: no room for the job's files ({exc}); submit it again " \
+        "later"
 
 
 def _fail(store: Store, storage: Storage, job_id: str, message: str,

@@ -104,6 +104,18 @@ class Settings(BaseSettings):
         120.0, gt=0, description="How long a synchronous execution waits for its job before "
         "answering asynchronously."
     )
+    health_interval_seconds: float = Field(
+        5.0, gt=0, description="How often the API checks Redis, the workers, the database and "
+        "the storage for /health (answers use the last check)."
+    )
+    min_free_bytes: int = Field(
+        256 * 1024**2, ge=0, description="Free space kept on DATA_DIR's disk: an upload is "
+        "refused with 507 unless the disk keeps this much after the file and room for its "
+        "result (as large again); a worker fails a job cleanly when the disk fills."
+    )
+    api_workers: int = Field(
+        2, ge=1, description="API processes (uvicorn workers) `serve` starts."
+    )
 
     @model_validator(mode="after")
     def _resolve(self) -> Settings:

@@ -218,6 +218,19 @@ def _user(row: Mapping[str, Any]) -> User:
     return User(id=row["id"], name=row["name"], created=row["created"], revoked=row["revoked"])
 
 
+#: Statements of every request, built once (building one costs more than running it).
+_USER_FOR_KEY = sa.select(users).where(users.c.key_hash == sa.bindparam("key_hash"),
+                                       users.c.revoked.is_(None))
+_JOB = sa.select(jobs).where(jobs.c.id == sa.bindparam("job_id"))
+#: A user by key hash and, joined when it is theirs, one job (built once: polls are frequent).
+_JOB_FOR_KEY = (
+    sa.select(users, *[c.label(f"job_{c.name}") for c in jobs.c])
+    .select_from(users.outerjoin(jobs, sa.and_(jobs.c.user_id == users.c.id,
+                                               jobs.c.id == sa.bindparam("job_id"))))
+    .where(users.c.key_hash == sa.bindparam("key_hash"), users.c.revoked.is_(None))
+)
+
+
 class Store:
     """Users, uploads and jobs in one database. Opening one migrates the schema (unless
     ``migrate`` is False: the caller knows it is current); share one per process."""
@@ -341,11 +354,21 @@ class Store:
 
     def user_for_key(self, key: str) -> User | None:
         with self._read() as db:
-            row = db.execute(
-                sa.select(users).where(users.c.key_hash == hash_key(key),
-                                       users.c.revoked.is_(None))
-            ).mappings().first()
+            row = db.execute(_USER_FOR_KEY, {"key_hash": hash_key(key)}).mappings().first()
         return _user(row) if row else None
+
+    def job_for_key(self, key: str, job_id: str) -> tuple[User | None, Job | None]:
+        """The key's user and that user's job ``job_id``, in one query (a status poll's whole
+        database work): (None, None) for a wrong or revoked key, (user, None) when the job is
+        not the user's or does not exist."""
+        with self._read() as db:
+            row = db.execute(_JOB_FOR_KEY, {"key_hash": hash_key(key), "job_id": job_id}
+                             ).mappings().first()
+        if row is None:
+            return None, None
+        if row["job_id"] is None:
+            return _user(row), None
+        return _user(row), Job.from_row({c.name: row[f"job_{c.name}"] for c in jobs.c})
 
     # ---- uploads -----------------------------------------------------------------------------
 
@@ -509,7 +532,7 @@ class Store:
 
     def get_job(self, job_id: str) -> Job | None:
         with self._read() as db:
-            row = db.execute(sa.select(jobs).where(jobs.c.id == job_id)).mappings().first()
+            row = db.execute(_JOB, {"job_id": job_id}).mappings().first()
         return Job.from_row(row) if row else None
 
     def list_jobs(self, user_id: int, limit: int, offset: int) -> tuple[list[Job], int]:

@@ -6,15 +6,20 @@ from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
 
 from lidar_outliers import view
 from lidar_outliers.jobs.documents import MEDIA, results_document, status_document
 from service import html
-from service.deps import ServiceDep, UserDep
+from service.deps import BearerDep, ServiceDep, UserDep
 from service.downloads import object_response
 from service.joblist import JobFilter, split_values
 
 router = APIRouter(tags=["jobs"])
+
+#: Largest list offset (a database integer holds more; nobody has this many jobs).
+MAX_OFFSET = 10**9
 
 #: Downloads answer HEAD too (size and validators without the body) and honour Range.
 DOWNLOAD = {"methods": ["GET", "HEAD"], "response_class": Response, "responses": {
@@ -37,7 +42,7 @@ def list_jobs(
     service: ServiceDep,
     user: UserDep,
     limit: Annotated[int, Query(ge=1, le=1000)] = 50,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
     process_id: Annotated[list[str], Query(alias="processID", description=
                           "Only jobs of these processes (repeat it or separate with commas).")
                           ] = [],  # noqa: B006 - FastAPI copies query defaults
@@ -73,9 +78,14 @@ def list_jobs(
 
 
 @router.get("/jobs/{job_id}")
-def get_job(job_id: str, request: Request, service: ServiceDep, user: UserDep) -> Any:
-    doc = status_document(service.get(user, job_id))
-    return html.job(doc) if html.wants_html(request) else doc
+async def get_job(job_id: str, request: Request, service: ServiceDep,
+                  _key: BearerDep) -> Response:
+    """The job's status document (what clients poll: one database query, one thread hop), or
+    its HTML page for a browser."""
+    wants_html = html.wants_html(request)
+    job = await run_in_threadpool(service.poll, request.headers.get("authorization"), job_id)
+    doc = status_document(job)
+    return html.job(doc) if wants_html else JSONResponse(doc)
 
 
 @router.delete("/jobs/{job_id}")

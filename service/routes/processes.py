@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from fastapi import APIRouter, Request
@@ -15,6 +14,7 @@ from service import html
 from service.deps import ServiceDep, UserDep
 from service.execution import Preference, subscriber_of, wait_for
 from service.jobs import JobService
+from service.json_body import parse_json
 from service.problems import Problem
 from service.processes import (
     TRAJECTORY_INPUT,
@@ -23,7 +23,12 @@ from service.processes import (
     process_ids,
     summary,
 )
-from service.uploads import MULTIPART_OVERHEAD, receive_multipart, refuse_declared_size
+from service.uploads import (
+    MULTIPART_OVERHEAD,
+    declared_size,
+    receive_multipart,
+    refuse_declared_size,
+)
 
 router = APIRouter(tags=["processes"])
 
@@ -50,7 +55,7 @@ EXECUTE_BODY = {
                     "properties": {
                         "file": {"type": "string", "format": "binary",
                                  "description": "The LAS or LAZ cloud."},
-                        "inputs": {"type": "string",
+                        "inputs": {"type": "object",
                                    "description": "The process inputs as JSON, e.g. "
                                    '{"n1": 5}; GET /processes/{id} gives the schema.'},
                         "trajectory": {"type": "string", "format": "binary",
@@ -58,7 +63,8 @@ EXECUTE_BODY = {
                                        "'time x y z' (used by the transient detector)."},
                         "subscriber": {"type": "string", "description": SUBSCRIBER_HELP},
                     },
-                }
+                },
+                "encoding": {"inputs": {"contentType": "application/json"}},
             },
             "application/json": {
                 "schema": {
@@ -96,12 +102,8 @@ def get_process(process_id: str, request: Request) -> Any:
     return html.process(doc) if html.wants_html(request) else doc
 
 
-def _json_inputs(text: str, part: str = "inputs") -> Any:
-    try:
-        return json.loads(text) if text.strip() else {}
-    except json.JSONDecodeError as exc:
-        raise Problem(400, "invalid-parameter", f"{part}: not valid JSON ({exc})",
-                      errors=[{"parameter": part, "message": "not valid JSON"}]) from None
+def _json_inputs(text: str, root: str) -> Any:
+    return parse_json(text, root) if text.strip() else {}
 
 
 @router.post("/processes/{process_id}/execution", status_code=201,
@@ -121,12 +123,15 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         limit, quota = await run_in_threadpool(service.upload_limit, user)
         refuse_declared_size(request.headers.get("content-length"), limit, quota,
                              MULTIPART_OVERHEAD)
+        # 507 before a byte is read when the disk cannot take the file and its result
+        await run_in_threadpool(service.check_room,
+                                declared_size(request.headers.get("content-length")))
         received = await receive_multipart(request.stream(), content_type,
                                            service.incoming_dir, limit, quota)
         assert received.path is not None
         try:
-            params, cloud = service.parse_inputs(process_id,
-                                                 _json_inputs(received.fields.get("inputs", "")))
+            inputs = _json_inputs(received.fields.get("inputs", ""), "inputs")
+            params, cloud = service.parse_inputs(process_id, inputs)
             subscriber_text = received.fields.get("subscriber", "")
             subscriber = await run_in_threadpool(
                 subscriber_of, _json_inputs(subscriber_text, "subscriber")
@@ -145,7 +150,7 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
         body = await request.body()
         if len(body) > MAX_JSON_BYTES:
             raise Problem(413, "file-too-large", "a JSON execute request is at most 1 MiB")
-        document = _json_inputs(body.decode("utf-8", "replace"))
+        document = _json_inputs(body.decode("utf-8", "replace"), "")
         if not isinstance(document, dict) or not isinstance(document.get("inputs", {}), dict):
             raise Problem(400, "invalid-request", 'send {"inputs": {"cloud": {"href": '
                           '"/uploads/<id>"}, ...}}')

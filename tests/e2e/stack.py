@@ -212,7 +212,7 @@ class Stack:
     def run_cli(self, *args: str) -> str:
         """Run `lidar-outliers ARGS` with this stack's settings; return its output."""
         out = subprocess.run(
-            [str(Path(sys.executable).parent / "lidar-outliers"), *args],
+            [sys.executable, "-m", "lidar_outliers", *args],  # this checkout's code
             env=self.env, cwd=ROOT, capture_output=True, text=True, timeout=60, check=True,
         )
         return out.stdout

@@ -215,9 +215,8 @@ def _part(tmp_path: Path, settings: Settings) -> Path:
 
 
 def run_cli(tmp_path: Path, *args: str, **settings: str) -> subprocess.CompletedProcess:
-    # PYTHONPATH: the command imports this checkout's code, whichever one the venv came from
-    env = dict(os.environ, DATA_DIR=str(tmp_path / "data"), PYTHONPATH=str(ROOT), **settings)
-    return subprocess.run([str(Path(sys.executable).parent / "lidar-outliers"), *args],
+    env = dict(os.environ, DATA_DIR=str(tmp_path / "data"), **settings)
+    return subprocess.run([sys.executable, "-m", "lidar_outliers", *args],  # this checkout
                           env=env, cwd=ROOT, capture_output=True, text=True, timeout=60)
 
 
