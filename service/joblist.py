@@ -41,8 +41,9 @@ def _stamp(text: str) -> str:
 
 
 def parse_datetime(value: str | None) -> tuple[str | None, str | None]:
-    """``datetime`` as the inclusive bounds of ``created`` (None: open)."""
-    if value is None:
+    """``datetime`` as the inclusive bounds of ``created`` (None: open; an empty value is no
+    filter, as an absent one)."""
+    if not value:
         return None, None
     if "/" not in value:
         stamp = _stamp(value)

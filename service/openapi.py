@@ -42,6 +42,11 @@ DESCRIPTIONS = {
     416: "Malformed or unsatisfiable `Range`.",
     422: "Invalid parameter: the problem's `errors` name each one.",
     429: "Too many queued or running jobs (see `Retry-After`).",
+    409: "Resumable upload: `Upload-Offset` is not the upload's offset (ask with HEAD).",
+    410: "Resumable upload: expired (start a new one).",
+    412: "Resumable upload: the request does not speak tus 1.0.0 (`Tus-Resumable`).",
+    423: "Resumable upload: another request is writing to it; retry.",
+    460: "Resumable upload: `Upload-Checksum` does not match the piece (offset unchanged).",
     503: "Redis, the workers, the database or the file storage are not reachable.",
     507: "The server's disk is full (or would be, with this file and its result).",
 }
@@ -57,6 +62,18 @@ OPERATIONS: dict[tuple[str, str], tuple[int, ...]] = {
     ("delete", "/jobs/{job_id}"): (503,),
     ("get", "/jobs/{job_id}/results"): (404, 503),
     ("get", "/jobs/{job_id}/results/points"): (404, 503, 507),
+    ("get", "/jobs"): (400,),
+    # resumable uploads (tus 1.0.0)
+    ("post", "/uploads/tus"): (400, 412, 413, 503, 507),
+    ("head", "/uploads/tus/{upload_id}"): (410, 412),
+    ("patch", "/uploads/tus/{upload_id}"): (400, 409, 410, 412, 413, 415, 423, 460, 503, 507),
+    ("delete", "/uploads/tus/{upload_id}"): (410, 412, 423),
+}
+#: Headers the tus protocol requires, as their schemas: the values the server accepts.
+TUS_HEADERS: dict[str, dict[str, Any]] = {
+    "tus-resumable": {"type": "string", "enum": ["1.0.0"]},
+    "upload-length": {"type": "string", "pattern": "^[1-9][0-9]{0,18}$"},  # a file: > 0
+    "upload-offset": {"type": "string", "pattern": "^[0-9]{1,19}$"},
 }
 DOWNLOADS = ("/jobs/{job_id}/results/cloud", "/jobs/{job_id}/results/statistics",
              "/jobs/{job_id}/results/preview")
@@ -89,6 +106,19 @@ def _name_the_values(operation: dict[str, Any]) -> None:
             parameter["schema"]["enum"] = known[parameter["name"]]
 
 
+def _require_tus_headers(path: str, operation: dict[str, Any]) -> None:
+    """The tus headers a resumable-upload request must send: required, with the accepted values
+    (FastAPI sees optional strings, since the routes answer their absence with tus statuses)."""
+    if not path.startswith("/uploads/tus"):
+        return
+    for parameter in operation.get("parameters", []):
+        wanted = (TUS_HEADERS.get(parameter["name"].lower())
+                  if parameter.get("in") == "header" else None)
+        if wanted is not None:
+            parameter["required"] = True
+            parameter["schema"] = dict(wanted)
+
+
 def document(app: FastAPI) -> dict[str, Any]:
     """The app's OpenAPI document, made once."""
     if app.openapi_schema:
@@ -101,6 +131,7 @@ def document(app: FastAPI) -> dict[str, Any]:
     for path, operations in schema["paths"].items():
         for method, operation in operations.items():
             _name_the_values(operation)
+            _require_tus_headers(path, operation)
             if method == "head":
                 operation["operationId"] = operation["operationId"].removesuffix("_get") + "_head"
             responses = operation.setdefault("responses", {})

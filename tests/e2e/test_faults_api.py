@@ -231,21 +231,39 @@ def test_users_add_names_the_store_it_wrote_to(stack: Stack, tmp_path: Path) -> 
         assert_problem(client.get("/jobs"), 401, "unauthorized")
 
 
-#: Bodies that are schema-valid and yet refused for what they hold: a file that is not LAS/LAZ
-#: (415), a trajectory or an upload href the server does not know (422), a busy user (429).
+#: Requests that are schema-valid and yet refused for what they hold: a file that is not LAS/LAZ
+#: (415), a trajectory or an upload href the server does not know (422), a busy user (429); a
+#: job filter the schema cannot judge (a 31st of February, an interval that ends before it
+#: starts: 400); a resumable upload's state (gone 404/410, another offset 409, busy 423). tus
+#: answers a request without its version header with 412.
 SCHEMATHESIS_CONFIG = """
 [[operations]]
 include-path-regex = "^/(uploads|processes/\\\\{process_id\\\\}/execution)$"
 include-method = "POST"
 checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "404", "413", "415", "422",
                                                      "429"]
+
+[[operations]]
+include-operation-id = "list_jobs_jobs_get"
+checks.positive_data_acceptance.expected-statuses = ["2xx", "400", "401"]
+
+[[operations]]
+include-path-regex = "^/uploads/tus"
+checks.positive_data_acceptance.expected-statuses = ["2xx", "400", "401", "404", "409", "410",
+                                                     "413", "423"]
+# tus answers a missing or other protocol version with 412, as the protocol says
+checks.negative_data_rejection.expected-statuses = ["400", "401", "404", "409", "412", "413",
+                                                    "415", "422"]
+checks.missing_required_header.expected-statuses = ["400", "401", "412", "422"]
 """
 
 
 def test_schemathesis_finds_no_failure(stack: Stack, tmp_path: Path) -> None:
     """Every documented operation with a key: no 5xx, only documented statuses and media types,
     schema-valid requests accepted, invalid ones refused. /health is left out: without a
-    worker it answers 503 by design (tested above)."""
+    worker it answers 503 by design (tested above). A resumable upload's PATCH is left out too:
+    its body type (application/offset+octet-stream) is one schemathesis cannot send; the
+    resumable-upload tests drive it."""
     st = Path(sys.executable).parent / "st"
     if not st.exists():
         pytest.skip(f"schemathesis is not installed ({st}); `pip install -e .[test]`")
@@ -256,7 +274,8 @@ def test_schemathesis_finds_no_failure(stack: Stack, tmp_path: Path) -> None:
         [str(st), "--config-file", str(config), "run", f"{stack.url}/openapi.json",
          "-H", f"Authorization: Bearer {key}", "--max-examples", "5",
          "--phases", "examples,coverage,fuzzing", "--workers", "1", "--seed", "1",
-         "--request-timeout", "60", "--exclude-path", "/health", "--no-color"],
+         "--request-timeout", "60", "--exclude-path", "/health", "--exclude-method", "PATCH",
+         "--no-color"],
         capture_output=True, text=True, timeout=900, cwd=tmp_path)
     assert run.returncode == 0, run.stdout[-6000:] + run.stderr[-2000:]
     assert re.search(r"\d+ passed", run.stdout), run.stdout[-2000:]
