@@ -224,6 +224,36 @@ def test_floor_matches_explicit_least_squares():
     assert np.isnan(floor_scores(xyz, candidate, reference, reach=0.0)[candidate]).sum() > 0
 
 
+def test_floor_slope_guard_matches_explicit_gradient():
+    """``max_slope`` keeps exactly the candidates whose lower refit plane's gradient is at
+    most it (the gradient from an explicit least-squares fit)."""
+    xyz = rough_terrain(15, 500)
+    xyz[:, 2] += 0.8 * xyz[:, 0]  # a slope near the limit: some planes pass, some not
+    reference = np.arange(0, 500, 2)
+    candidate = np.zeros(500, bool)
+    candidate[1::5] = True
+    limit = 0.8
+    free = floor_scores(xyz, candidate, reference, k_floor=12, quantile=0.1, below=0.5)
+    guarded = floor_scores(xyz, candidate, reference, k_floor=12, quantile=0.1, below=0.5,
+                           max_slope=limit)
+    kept = []
+    for i in np.flatnonzero(candidate):
+        d2 = np.sum((xyz[reference, :2] - xyz[i, :2]) ** 2, axis=1)
+        nb = xyz[reference[np.argsort(d2, kind="stable")[:12]]]
+        a_mat = np.c_[nb[:, :2] - nb[:, :2].mean(axis=0), np.ones(12)]
+        coef = np.linalg.lstsq(a_mat, nb[:, 2], rcond=None)[0]
+        res = nb[:, 2] - a_mat @ coef
+        lower = res <= np.median(res)
+        coef = np.linalg.lstsq(a_mat[lower], nb[lower, 2], rcond=None)[0]
+        gradient = np.hypot(coef[0], coef[1])
+        kept.append(gradient <= limit)
+        if abs(gradient - limit) > 1e-9:
+            assert np.isnan(guarded[i]) == (gradient > limit)
+    assert 0 < sum(kept) < len(kept)  # the scene tests both sides
+    both = np.isfinite(guarded)
+    np.testing.assert_array_equal(guarded[both], free[both])
+
+
 def test_pit_scores_match_brute_force():
     rng = np.random.default_rng(14)
     xyz = rough_terrain(14, 800)

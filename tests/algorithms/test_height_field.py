@@ -161,6 +161,37 @@ def test_floating_clump_above_a_road_is_found():
     assert res.flagged[: len(road)].sum() == 0
 
 
+def mirror_scene(rng: np.random.Generator) -> tuple[np.ndarray, int, int]:
+    """A 6 m road with a puddle (no returns from the water, 1 m wide), mirror returns 0.3-0.7 m
+    under it (the image of a car body), and a wall seen only above 0.9 m (its foot
+    hidden): xyz, index of the first mirror return and of the first wall point."""
+    road = rough_road(rng, size=6.0, spacing=0.04)
+    puddle = np.hypot(road[:, 0] - 3.0, road[:, 1] - 3.0) < 0.5
+    road = road[~puddle]
+    n_img = 300  # the image of a car's roof and side: surfaces of their own
+    img = np.column_stack([rng.uniform(2.7, 3.3, n_img), rng.uniform(2.7, 3.3, n_img),
+                           np.full(n_img, -0.7)])
+    img[::2, 0] = 2.7
+    img[::2, 2] = rng.uniform(-0.7, -0.3, n_img // 2)
+    img += rng.normal(0, 0.002, img.shape)
+    wx, wz = (a.ravel() for a in np.meshgrid(np.arange(0.5, 1.5, 0.04),
+                                             np.arange(0.9, 1.6, 0.04)))
+    wall = np.column_stack([wx, np.full(wx.size, 6.5), wz])
+    wall += rng.normal(0, 0.002, wall.shape)
+    return np.vstack([road, img, wall]), len(road), len(road) + n_img
+
+
+def test_mirror_returns_under_the_road_are_low():
+    rng = np.random.default_rng(11)
+    xyz, first_img, first_wall = mirror_scene(rng)
+    res = detect_height_field(xyz)
+    assert res.flagged[first_img:first_wall].mean() >= 0.9
+    assert not res.flagged[:first_img].any() and not res.flagged[first_wall:].any()
+    assert res.info["low_test"]["points_flagged"] >= 0.9 * (first_wall - first_img)
+    off = detect_height_field(xyz, low=False)
+    assert off.flagged[first_img:first_wall].mean() < 0.1 and "low_test" not in off.info
+
+
 def test_rough_surface_with_curb_and_lid_raises_nothing():
     rng = np.random.default_rng(5)
     xyz = road_with_curb_and_lid(rng)
