@@ -81,7 +81,8 @@ DETECTOR = Detector(
     name="transient",
     parameters=TransientParameters,
     run=run,
-    summary="Clusters seen at one moment only and attached to nothing (moving objects).",
+    summary=("Clusters seen at one moment only, attached to nothing, where their place was seen "
+             "again (moving objects)."),
     flag_bit=128,
     needs=("gps_time",),
 )
