@@ -324,8 +324,10 @@ def floor_scores(
     its ``k_floor`` nearest reference points in XY, fitted again to those on or under the first
     fit's median residual, gives residuals; the floor is their ``quantile``.
     Returns (n,) float64: (floor - r) / below for candidates within ``reach`` metres (XY) of a
-    reference point and whose floor plane's gradient is at most ``max_slope``, where r is the
-    candidate's residual; NaN elsewhere.
+    reference point, where r is the candidate's residual; NaN elsewhere. Where the floor
+    plane's gradient exceeds ``max_slope`` (no floor: e.g. a facade's lowest returns) the
+    candidate is compared with the lowest of those reference points instead: (lowest z - z) /
+    below.
     """
     score = np.full(len(xyz), np.nan)
     cand = np.flatnonzero(candidate)
@@ -342,8 +344,9 @@ def floor_scores(
         r, res, grad = _plane_residuals(xyz[reference[j]], xyz[ci], lower_refit=True,
                                         slope=True)
         floor = np.quantile(res, quantile, axis=1)
-        usable = (dist[:, 0] <= reach) & (grad <= max_slope)
-        score[ci] = np.where(usable, (floor - r) / below, np.nan)
+        lowest = xyz[reference[j], 2].min(axis=1)
+        under = np.where(grad <= max_slope, floor - r, lowest - xyz[ci, 2])
+        score[ci] = np.where(dist[:, 0] <= reach, under / below, np.nan)
     return score
 
 
