@@ -38,7 +38,8 @@ false alarms because one smooth surface cannot follow an edge. Here, for every p
    how far it lies under the floor, in sigmas. Only floors that are ground-like count
    (gradient at most 1, 45 degrees, as ``one_sided``): a mobile scanner sees the road and
    the sidewalks from above, while "the lowest return" of a facade seen over parked cars
-   is no floor.
+   is no floor; there the point is compared with the lowest of those cells instead (a
+   clump under everything around it is still low).
 
 A point is flagged when its score exceeds ``threshold``. The kernels (numba, parallel over points)
 are in :mod:`algorithms.height_field_fits`; the neighbour search is scipy's cKDTree. Both are
