@@ -136,10 +136,45 @@ LOW_FLOOR_QUANTILE = 0.05
 LOW_MAX_SLOPE = 1.0
 
 
+#: Of a floor cell's 8 neighbour cells, at least this many hold floor samples that continue
+#: its plane (5: a surface seen from above, or its edge; a wall's foot is a line, 2-4).
+FLOOR_NEIGHBOURS = 5
+
+
+def floor_cells(local: np.ndarray, index: np.ndarray, cell: float) -> np.ndarray:
+    """Indices of the lowest returns of ``local[index]`` per ``cell``-metre XY cell
+    (:func:`algorithms.detached.lowest_per_cell`) that sample a floor: a surface seen from
+    above spans an area, so at least FLOOR_NEIGHBOURS of the 8 neighbouring cells hold a lowest
+    return within LOW_MAX_SLOPE x their distance in height. The lowest returns of a facade
+    whose foot is hidden (by parked cars) form a line: left out.
+    """
+    from algorithms.detached import lowest_per_cell
+
+    lowest = lowest_per_cell(local, index, cell)
+    if lowest.size == 0:
+        return lowest
+    ij = np.floor((local[lowest, :2] - local[index, :2].min(axis=0)) / cell).astype(np.int64)
+    ij += 1
+    width = int(ij[:, 1].max()) + 2
+    key = ij[:, 0] * width + ij[:, 1]
+    order = np.argsort(key)
+    keys, z = key[order], local[lowest[order], 2]
+    support = np.zeros(lowest.size, dtype=np.int64)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di == 0 and dj == 0:
+                continue
+            want = keys + di * width + dj
+            pos = np.minimum(np.searchsorted(keys, want), keys.size - 1)
+            near = LOW_MAX_SLOPE * cell * np.hypot(di, dj)
+            support += (keys[pos] == want) & (np.abs(z[pos] - z) <= near)
+    return np.sort(lowest[order[support >= FLOOR_NEIGHBOURS]])
+
+
 def low_scores(local: np.ndarray, sigma: float) -> tuple[np.ndarray, dict]:
     """(n,) how many sigmas each point of a small piece lies under the ground-like floor around
     it (step 6 of the module docstring; NaN where untested) and the info."""
-    from algorithms.detached import floor_scores, lowest_per_cell, surface_scale, xy_spacing
+    from algorithms.detached import floor_scores, surface_scale, xy_spacing
 
     score = np.full(len(local), np.nan)
     if len(local) <= LOW_PIECE_POINTS:
@@ -147,7 +182,7 @@ def low_scores(local: np.ndarray, sigma: float) -> tuple[np.ndarray, dict]:
     voxel, small = surface_scale(local, LOW_PIECE_POINTS, start=xy_spacing(local))
     if voxel is None or not small.any():
         return score, {"voxel": voxel, "points_tested": 0}
-    reference = lowest_per_cell(local, np.flatnonzero(~small), 2 * voxel)
+    reference = floor_cells(local, np.flatnonzero(~small), 2 * voxel)
     score = floor_scores(local, small, reference, k_floor=LOW_K_FLOOR,
                          quantile=LOW_FLOOR_QUANTILE, below=sigma, reach=4 * voxel,
                          max_slope=LOW_MAX_SLOPE)
