@@ -33,9 +33,10 @@ false alarms because one smooth surface cannot follow an edge. Here, for every p
    from the real surfaces. The cloud is cut into pieces joined through occupied voxels, at the
    finest voxel size where the real surfaces are whole (:func:`algorithms.detached.
    surface_scale`); the lowest return of each cell (two voxels wide) of the large pieces
-   samples the lowest surface where it spans an area (:func:`floor_cells`), and each point of a small piece is compared with the floor
-   plane of its 64 nearest cells (:func:`algorithms.detached.floor_scores`): its score is
-   how far it lies under the floor, in sigmas. Only floors that are ground-like count
+   samples the lowest surface where it spans an area (:func:`floor_cells`), and each point
+   of a small piece is compared with the floor plane of its 64 nearest cells
+   (:func:`algorithms.detached.floor_scores`): its score is how far it lies under the floor,
+   in sigmas. Only floors that are ground-like count
    (gradient at most 1, 45 degrees, as ``one_sided``): a mobile scanner sees the road and
    the sidewalks from above, while "the lowest return" of a facade seen over parked cars
    is no floor; there the point is compared with the lowest of those cells instead (a
