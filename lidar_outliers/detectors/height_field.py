@@ -19,6 +19,7 @@ DETECTOR = Detector(
     name="height_field",
     parameters=HeightFieldParameters,
     run=run,
-    summary="Leave-one-out local height fields with edge-aware half patches and robust sigma.",
+    summary=("Leave-one-out local height fields with edge-aware half patches and robust sigma; "
+             "clumps under the lowest ground-like surface (mirror returns)."),
     flag_bit=64,
 )
