@@ -40,6 +40,11 @@ from algorithms.tiles import grid_cells, group_by_cell
 #: convergence tolerance on ||da||.
 FIT_MAX_ITER = 500
 FIT_TOL = 1e-8
+#: Sections are fitted along the plain path (plain iteration, then the damped restarts), without
+#: Anderson acceleration: a section's points fit a quadric less well than a patch's, several
+#: stationary points are common after removals, and the plain path is the one a reader of the
+#: paper would take (a section costs few fits, so speed matters less than for patches).
+ACCELERATE = False
 
 
 @dataclass(frozen=True)
@@ -104,7 +109,9 @@ def _one_section(
         if n_active < min_points:
             _untested(active, score, critical)
             return _STOPPED + TOO_FEW_POINTS, fits, iterations, False
-        sigma0, it, status = fit_masked(xyz, active, var, max_iter, tol, params, centroid, v, t)
+        sigma0, it, status = fit_masked(
+            xyz, active, var, max_iter, tol, params, centroid, v, t, ACCELERATE
+        )
         fits += 1
         iterations += it
         if status != CONVERGED:
