@@ -350,8 +350,12 @@ def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> No
 
     Inverse iteration with one LU factorisation (no LAPACK call per patch): the smallest
     eigenvalue of B^T B is the algebraic fit's residual and lies well below the next one
-    (typically by a factor 50 on k = 40 patches), so about ten solves reach machine precision;
-    np.linalg.eigh is the fallback when they do not.
+    (typically by a factor 10 on the k = 40 patches of a mobile cloud), so about ten solves
+    reach START_TOL. Where the two smallest eigenvalues are close (flat patches: every plane
+    pair through the plane fits) the eigenvector is ill-determined anyway and the vector after
+    INVERSE_ITERATIONS solves is the start: the adjustment's own iteration (an inverse
+    iteration with the weighted N) goes on from there. np.linalg.eigh is the fallback only when
+    B^T B cannot be factorised.
     """
     acc = np.empty(_N_MONO)
     weighted_moments(xyz, active.astype(np.float64), _N_MONO, acc)
@@ -368,6 +372,7 @@ def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> No
     x = np.empty(N_PARAMS)
     for p in range(N_PARAMS):
         out[p] = 1.0 / (1.0 + p)  # generic start, not orthogonal to any eigenvector in practice
+    norm = 0.0
     if _lu_factor(lu, piv):
         for _ in range(INVERSE_ITERATIONS):
             x[:] = out
@@ -386,15 +391,19 @@ def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> No
                 new = sign * x[p] / norm
                 change = max(change, abs(new - out[p]))
                 out[p] = new
-            if change < 1e-14:
+            if change < START_TOL:
                 return
+        if norm > 0.0 and norm < math.inf:
+            return
     _, vecs = np.linalg.eigh(btb)
     for p in range(N_PARAMS):
         out[p] = vecs[p, 0]
 
 
-#: Inverse iterations for the algebraic start before falling back to a full eigendecomposition.
-INVERSE_ITERATIONS = 16
+#: Inverse iterations for the algebraic start at most, and the change of the unit vector (largest
+#: component) at which it stops.
+INVERSE_ITERATIONS = 40
+START_TOL = 1e-10
 
 
 # ---------------------------------------------------------------------------------------------
