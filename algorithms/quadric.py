@@ -403,7 +403,7 @@ def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> No
 #: Inverse iterations for the algebraic start at most, and the change of the unit vector (largest
 #: component) at which it stops.
 INVERSE_ITERATIONS = 40
-START_TOL = 1e-10
+START_TOL = 1e-12
 
 
 # ---------------------------------------------------------------------------------------------
