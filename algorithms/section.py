@@ -40,11 +40,6 @@ from algorithms.tiles import grid_cells, group_by_cell
 #: convergence tolerance on ||da||.
 FIT_MAX_ITER = 500
 FIT_TOL = 1e-8
-#: Sections are fitted along the plain path (plain iteration, then the damped restarts), without
-#: Anderson acceleration: a section's points fit a quadric less well than a patch's, several
-#: stationary points are common after removals, and the plain path is the one a reader of the
-#: paper would take (a section costs few fits, so speed matters less than for patches).
-ACCELERATE = False
 
 
 @dataclass(frozen=True)
@@ -82,6 +77,7 @@ def _one_section(
     max_fits: int,
     max_iter: int,
     tol: float,
+    accelerate: bool,
     score: np.ndarray,
     critical: np.ndarray,
     flagged: np.ndarray,
@@ -110,7 +106,7 @@ def _one_section(
             _untested(active, score, critical)
             return _STOPPED + TOO_FEW_POINTS, fits, iterations, False
         sigma0, it, status = fit_masked(
-            xyz, active, var, max_iter, tol, params, centroid, v, t, ACCELERATE
+            xyz, active, var, max_iter, tol, params, centroid, v, t, accelerate
         )
         fits += 1
         iterations += it
@@ -145,6 +141,7 @@ def _all_sections(
     max_fits: int,
     max_iter: int,
     tol: float,
+    accelerate: bool,
     score: np.ndarray,
     critical: np.ndarray,
     flagged: np.ndarray,
@@ -161,7 +158,7 @@ def _all_sections(
             j = bucket_sections[s]
             lo, hi = offsets[j], offsets[j + 1]
             outcome[j], fits[j], iterations[j], capped[j] = _one_section(
-                xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol,
+                xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol, accelerate,
                 score[lo:hi], critical[lo:hi], flagged[lo:hi],
             )  # fmt: skip
 
@@ -194,6 +191,7 @@ def detect_section(
     sigma: float | np.ndarray = 0.005,
     alpha: float = 0.001,
     max_iterations: int = 10,
+    accelerate: bool = True,
 ) -> DetectorResult:
     """Fit one quadric per square XY section and remove outliers iteratively.
 
@@ -210,6 +208,12 @@ def detect_section(
         points in the fit).
     max_iterations : int
         Fits per section at most.
+    accelerate : bool
+        Begin each fit with the Anderson-accelerated stage (:func:`algorithms.quadric.
+        fit_quadrics`); False takes the plain path with damped restarts only. Both reach the same
+        fixed points, but a fit that has several may end in another one; the accelerated path
+        converges on more sections (65 % of the points of a simulated mobile cloud tested
+        against 35 %).
 
     Returns
     -------
@@ -248,7 +252,8 @@ def detect_section(
         bucket_offsets, bucket_sections = balanced_buckets(sizes, numba.get_num_threads())
         _all_sections(
             xyz_sorted, offsets, bucket_offsets, bucket_sections, var, crit_table, min_points,
-            int(max_iterations), FIT_MAX_ITER, FIT_TOL, score_sorted, critical_sorted,
+            int(max_iterations), FIT_MAX_ITER, FIT_TOL, bool(accelerate), score_sorted,
+            critical_sorted,
             flagged_sorted, outcome, fits, iterations, capped,
         )  # fmt: skip
     score = np.empty(n)

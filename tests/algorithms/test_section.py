@@ -55,7 +55,10 @@ def test_against_slow_reference():
     xyz = surface(rng, 1200, size=8.0)
     bad = rng.choice(1200, 12, replace=False)
     xyz[bad, 2] += rng.choice([-1, 1], 12) * rng.uniform(0.03, 2.0, 12)
-    res = detect_section(xyz, section_size=4.0, sigma=0.005, alpha=0.001, max_iterations=10)
+    # The reference takes the plain path with damped restarts: so does the detector here (the
+    # accelerated path may end in another stationary point of a refit).
+    res = detect_section(xyz, section_size=4.0, sigma=0.005, alpha=0.001, max_iterations=10,
+                         accelerate=False)
     score, flagged = slow_section(xyz, 4.0, 0.005, 0.001, 10)
     np.testing.assert_array_equal(res.flagged, flagged)
     np.testing.assert_array_equal(np.isnan(res.score), np.isnan(score))
@@ -63,7 +66,7 @@ def test_against_slow_reference():
     # Some sections of this curved, contaminated surface never converge (in both
     # implementations alike): they are untested, not wrong.
     assert tested.mean() > 0.5
-    # The detector stops at ||da|| < 1e-8 (accelerated), the reference at 1e-10 (plain).
+    # The detector stops at ||da|| < 1e-8, the reference at 1e-10.
     np.testing.assert_allclose(res.score[tested], score[tested], rtol=1e-4, atol=1e-4)
 
 
