@@ -15,7 +15,16 @@ from scipy.spatial import cKDTree
 from algorithms.checks import check_xyz
 from algorithms.errors import ParameterError
 from algorithms.params import Parameters, param
-from algorithms.quadric import DOF_LOSS, fit_quadrics, min_patch_size
+from algorithms.quadric import (
+    COLLINEAR,
+    CONVERGED,
+    DOF_LOSS,
+    NOT_CONVERGED,
+    SINGULAR,
+    TOO_FEW_POINTS,
+    fit_quadrics,
+    min_patch_size,
+)
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
 from algorithms.tiles import spatial_batches
@@ -24,11 +33,21 @@ from algorithms.tiles import spatial_batches
 #: larger k gets proportionally smaller batches, so memory does not grow with k.
 BATCH_POINTS = 65536
 BATCH_NEIGHBOURS = BATCH_POINTS * 40
-#: Adjustments per patch at most, and the step size taken as convergence (||da||, ||a|| = 1).
-#: 1e-7 leaves T_i within ~1e-5 of its fully converged value (the critical value is ~3.6) and
-#: saves ~10 % of the time against 1e-8.
-FIT_MAX_ITER = 100
-FIT_TOL = 1e-7
+#: Adjustments per patch at most (over all stages of the iteration, see
+#: :func:`algorithms.quadric.stage_budget`), and the step size taken as convergence (||da||,
+#: ||a|| = 1). T_i lies within ~100 tol of its limit, and the accelerated path is sensitive to
+#: rounding (coordinates near 5e6 m move a stopped T_i by up to ~100 tol too): 1e-8 keeps scores
+#: of a shifted cloud within 1e-5 of each other; 1e-6 would save ~5 adjustments per patch.
+FIT_MAX_ITER = 500
+FIT_TOL = 1e-8
+
+#: Why a point is untested, by fit status (:mod:`algorithms.quadric`), as named in the statistics.
+UNTESTED_REASONS = {
+    NOT_CONVERGED: "did_not_converge",
+    COLLINEAR: "degenerate_geometry",
+    SINGULAR: "degenerate_geometry",
+    TOO_FEW_POINTS: "too_few_points",
+}
 
 
 #: Coordinate standard deviation: one number, or one per axis (X, Y, Z).
@@ -113,9 +132,9 @@ def detect_patch(
     Returns
     -------
     DetectorResult
-        score (n,) = T_i of eq. 31 of each point in its own patch, NaN where the patch did not
-        converge, its points are nearly collinear (no unique quadric, see
-        ``algorithms.quadric.COLLINEAR_RATIO``) or n < k; flagged = score > t(k - 9).
+        score (n,) = T_i of eq. 31 of each point in its own patch, NaN where untested;
+        flagged = score > t(k - 9). ``info["points_untested"]`` counts the untested points by
+        reason (:func:`untested_reasons`).
     """
     p = PatchParameters(k=k, sigma=sigma, alpha=alpha)
     pts = check_xyz(xyz)
@@ -124,19 +143,20 @@ def detect_patch(
     crit = check_k_alpha(k, float(alpha))
     n = pts.shape[0]
     score = np.full(n, np.nan)
+    reasons = untested_reasons()
     info: dict = {
         "k": k,
         "sigma": float(var_sigma[0]) if np.all(var_sigma == var_sigma[0]) else var_sigma.tolist(),
         "alpha": float(alpha),
         "critical_value": crit,
         "points_tested": 0,
-        "patches_not_converged": 0,
-        "patches_collinear": 0,
+        "points_untested": reasons,
         "mean_iterations": None,
         "fit_max_iterations": FIT_MAX_ITER,
         "fit_tolerance": FIT_TOL,
     }
     if n < k:
+        reasons["too_few_points"] = n
         info["note"] = f"fewer points ({n}) than k={k}: nothing tested"
         return DetectorResult(score, np.zeros(n, dtype=bool), crit, info)
 
@@ -145,8 +165,7 @@ def detect_patch(
     first, location = distinct_locations(local)
     copies = np.bincount(location)  # points at each distinct location
     location_score = np.full(first.size, np.nan)
-    not_converged = 0
-    collinear = 0
+    location_status = np.empty(first.size, dtype=np.int64)
     iterations_sum = 0
     batch_points = max(1, min(int(batch_points), BATCH_NEIGHBOURS // k))
     for batch in spatial_batches(local[first, :2], batch_points, tile_size):
@@ -156,17 +175,33 @@ def detect_patch(
             t_first_only=True,
         )
         location_score[batch] = np.where(fit.converged, fit.t_stat[:, 0], np.nan)
-        weight = copies[batch]  # the statistics count points, not distinct locations
-        not_converged += int(weight[~fit.converged].sum())
-        collinear += int(weight[~fit.converged & (fit.iterations == 0)].sum())
-        iterations_sum += int((weight * fit.iterations).sum())
+        location_status[batch] = fit.status
+        iterations_sum += int((copies[batch] * fit.iterations).sum())  # per point, not location
         del nbr, fit
     score = location_score[location]
     tested = ~np.isnan(score)
+    count_untested(reasons, location_status[location], tested)
     info["points_tested"] = int(tested.sum())
-    info["patches_not_converged"] = not_converged  # collinear ones included
-    info["patches_collinear"] = collinear
     info["mean_iterations"] = iterations_sum / n
     flagged = np.zeros(n, dtype=bool)
     flagged[tested] = score[tested] > crit
     return DetectorResult(score, flagged, crit, info)
+
+
+def untested_reasons() -> dict[str, int]:
+    """Untested points by reason, all zero: ``did_not_converge`` (the iteration of eqs. 20-29 did
+    not reach the tolerance in ``FIT_MAX_ITER`` adjustments), ``degenerate_geometry`` (nearly
+    collinear points, singular normal equations, or a T_i beyond the bound sqrt(n - 9) that
+    cancellation in q_vv produced) and ``too_few_points`` (fewer points than the fit needs)."""
+    return {"did_not_converge": 0, "degenerate_geometry": 0, "too_few_points": 0}
+
+
+def count_untested(reasons: dict[str, int], status: np.ndarray, tested: np.ndarray) -> None:
+    """Add the untested points (not ``tested``) to ``reasons`` by their fit ``status``: a
+    converged fit whose T_i is NaN (distrusted, :func:`algorithms.quadric.t_statistic`) counts as
+    degenerate geometry."""
+    untested = status[~tested]
+    counts = np.bincount(untested, minlength=max(UNTESTED_REASONS) + 1)
+    for code, name in UNTESTED_REASONS.items():
+        reasons[name] += int(counts[code])
+    reasons["degenerate_geometry"] += int(counts[CONVERGED])

@@ -24,7 +24,10 @@ eq. 19):
   points used, no scaling), so coordinates near 5e6 m lose nothing;
 * the start is the algebraic fit: the unit eigenvector of the smallest eigenvalue of B^T B;
 * the linearisation is at the observed coordinates (eqs. 24-27), as in the paper;
-* iteration stops when ||da|| < tol or after max_iter iterations (then ``converged`` is False);
+* iteration stops when ||da|| < tol; if it has not after a stage's share of ``max_iter``, it
+  restarts from the algebraic start with another path (Anderson-accelerated, plain, damped by 0.5,
+  damped by 0.25; see the iteration section below), and after ``max_iter`` adjustments in all the
+  fit reports ``status`` NOT_CONVERGED;
 * the reported residuals, sigma_0 and T_i are those of the last adjustment solved:
   sigma_0^2 = v^T P v / (n - 9) and T_i = |v_i| / (sigma_0 sqrt(q_vv_i)) (eq. 31) with
   Q_vv = P^-1 - B Q_aa B^T, Q_aa the 10 x 10 block of the inverse bordered matrix.
@@ -38,14 +41,15 @@ Facts of this model that matter to its users:
   coincident planes (a3 ~ 1) and the iteration converges linearly and slowly (contraction ~0.6 per
   step) towards a double plane; the noise is shared between the two sheets, so sigma_0 comes out
   near 0.5 for a correct sigma. T_i is self-normalised and unaffected in scale.
-* The plain iteration does not always converge: some patches settle in a 2-cycle or wander with a
-  step that stays near 1e-6 .. 1e-3 (about 0.5 % of k = 40 patches on a synthetic road; more on
-  strongly curved 5 m sections, where the start is a degenerate plane pair with sigma_0 ~ 4).
-  ``max_iter`` bounds the work and such fits report ``converged = False``; the detectors leave
-  their points untested.
-* The fixed-point iteration is accelerated by SQUAREM (Varadhan & Roland 2008) with a safeguard;
-  this changes the path, not the equations solved or the stopping rule. In random tests about
-  0.1 % of patches end in a different stationary point than the plain iteration does.
+* The plain iteration a <- a + da does not always converge: some patches settle in a 2-cycle
+  (an eigenvalue of the iteration's Jacobian near -1) or crawl along a flat valley with a step
+  near 1e-6 .. 1e-3 for hundreds of iterations (a seventh of the k = 40 patches of a smooth but
+  strongly curved surface stopped at 100 plain iterations). Damping, a <- a + s da with s = 0.5
+  or 0.25, has the same fixed points and turns the 2-cycle into a contraction; Anderson
+  acceleration takes most patches there in about ten adjustments. Which fixed point is reached
+  can depend on the path when a patch has several (rare: about 1 % of random curved patches).
+* Fits that cannot give a T_i say why (``status``): too few points, nearly collinear points, a
+  singular system, or no convergence within ``max_iter``.
 """
 
 from __future__ import annotations
@@ -87,8 +91,10 @@ class QuadricFit:
     iterations : (m,) int64
         Adjustments solved.
     converged : (m,) bool
-        ||da|| < tol reached within max_iter (False also for a singular system, and for nearly
-        collinear points, which get ``iterations`` 0).
+        ||da|| < tol reached within max_iter (``status == CONVERGED``).
+    status : (m,) int64
+        CONVERGED, NOT_CONVERGED (max_iter reached), COLLINEAR (nearly collinear points; 0
+        iterations), SINGULAR (the normal equations could not be solved) or TOO_FEW_POINTS.
     """
 
     params: np.ndarray
@@ -98,6 +104,7 @@ class QuadricFit:
     sigma0: np.ndarray
     iterations: np.ndarray
     converged: np.ndarray
+    status: np.ndarray
 
 
 # ---------------------------------------------------------------------------------------------
@@ -343,8 +350,12 @@ def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> No
 
     Inverse iteration with one LU factorisation (no LAPACK call per patch): the smallest
     eigenvalue of B^T B is the algebraic fit's residual and lies well below the next one
-    (typically by a factor 50 on k = 40 patches), so about ten solves reach machine precision;
-    np.linalg.eigh is the fallback when they do not.
+    (typically by a factor 10 on the k = 40 patches of a mobile cloud), so about ten solves
+    reach START_TOL. Where the two smallest eigenvalues are close (flat patches: every plane
+    pair through the plane fits) the eigenvector is ill-determined anyway and the vector after
+    INVERSE_ITERATIONS solves is the start: the adjustment's own iteration (an inverse
+    iteration with the weighted N) goes on from there. np.linalg.eigh is the fallback only when
+    B^T B cannot be factorised.
     """
     acc = np.empty(_N_MONO)
     weighted_moments(xyz, active.astype(np.float64), _N_MONO, acc)
@@ -361,6 +372,7 @@ def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> No
     x = np.empty(N_PARAMS)
     for p in range(N_PARAMS):
         out[p] = 1.0 / (1.0 + p)  # generic start, not orthogonal to any eigenvector in practice
+    norm = 0.0
     if _lu_factor(lu, piv):
         for _ in range(INVERSE_ITERATIONS):
             x[:] = out
@@ -379,15 +391,19 @@ def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> No
                 new = sign * x[p] / norm
                 change = max(change, abs(new - out[p]))
                 out[p] = new
-            if change < 1e-14:
+            if change < START_TOL:
                 return
+        if norm > 0.0 and norm < math.inf:
+            return
     _, vecs = np.linalg.eigh(btb)
     for p in range(N_PARAMS):
         out[p] = vecs[p, 0]
 
 
-#: Inverse iterations for the algebraic start before falling back to a full eigendecomposition.
-INVERSE_ITERATIONS = 16
+#: Inverse iterations for the algebraic start at most, and the change of the unit vector (largest
+#: component) at which it stops.
+INVERSE_ITERATIONS = 40
+START_TOL = 1e-12
 
 
 # ---------------------------------------------------------------------------------------------
@@ -462,8 +478,17 @@ def _adjust(
     return _solve(m, rhs)
 
 
-#: SQUAREM step length bound (Varadhan & Roland 2008): alpha in [-ALPHA_MAX, -1].
-ALPHA_MAX = 8.0
+# Fit outcome codes (QuadricFit.status): why a fit gives no T_i, for the detectors' statistics.
+#: The iteration converged: T_i (eq. 31) is valid.
+CONVERGED = 0
+#: ||da|| stayed above the tolerance through every stage of the iteration.
+NOT_CONVERGED = 1
+#: The points lie nearly on a line (:data:`COLLINEAR_RATIO`): no unique quadric.
+COLLINEAR = 2
+#: The bordered normal equations were singular or a weight of eq. 30 was zero or not finite.
+SINGULAR = 3
+#: No redundancy: at most 9 points (10 parameters, 1 constraint).
+TOO_FEW_POINTS = 4
 
 
 #: Points whose spread across their main direction is below this fraction of the spread along it
@@ -493,6 +518,81 @@ def _nearly_collinear(xyz: np.ndarray, active: np.ndarray) -> bool:
     return not minors > (COLLINEAR_RATIO * trace) ** 2
 
 
+# ---------------------------------------------------------------------------------------------
+# The iteration. Each adjustment maps the approximate parameters a0 to a0 + da (eqs. 20-29 with
+# the linearised eq. 19); the fit is the fixed point, where da = 0. The plain iteration
+# a <- a + da converges linearly, and on some patches not at all: it settles in a 2-cycle (an
+# eigenvalue of the map's Jacobian near -1) or crawls along a flat valley. The fixed points do not
+# depend on the path, so the path is chosen for robustness and speed:
+#
+#   stage 0  Anderson acceleration (depth ANDERSON_DEPTH) of a <- a + da, safeguarded: when
+#            ||da|| grows beyond twice the smallest seen, the history is dropped and a damped
+#            step a + s da is taken (s = 0.5, then 0.25 while it keeps growing);
+#   stage 1  restart from the algebraic start, plain steps a <- a + da;
+#   stage 2  restart, damped steps a <- a + 0.5 da (a 2-cycle of the plain map becomes a fixed
+#            point's contraction: eigenvalue -1 of the Jacobian turns into 0);
+#   stage 3  restart, damped steps a <- a + 0.25 da.
+#
+# Each stage has a share of ``max_iter`` (:func:`stage_budget`); the first ||da|| < tol ends the
+# fit. Without acceleration stage 0 is skipped.
+# ---------------------------------------------------------------------------------------------
+
+#: Step factors of the stages after the accelerated one (plain, then damped restarts).
+DAMPING = (1.0, 0.5, 0.25)
+#: Iterates kept by Anderson acceleration.
+ANDERSON_DEPTH = 3
+#: Share of max_iter per stage: accelerated, plain, 0.5, 0.25 (with acceleration; first row) or
+#: plain, 0.5, 0.25 (without; second row); the last stage also gets what the rounding leaves.
+_SHARES = np.array([[0.4, 0.2, 0.2, 0.2], [0.4, 0.3, 0.3, 0.0]])
+
+
+@njit(cache=True)
+def stage_budget(max_iter: int, stage: int, accelerate: bool) -> int:
+    """Adjustments allowed in ``stage`` (0-based; stage 0 is the accelerated one only when
+    ``accelerate``). The budgets add up to ``max_iter``."""
+    row = 0 if accelerate else 1
+    last = 3 if accelerate else 2
+    used = 0
+    for k in range(last + 1):
+        b = max_iter - used if k == last else int(max_iter * _SHARES[row, k])
+        if k == stage:
+            return b
+        used += b
+    return 0
+
+
+@njit(cache=True)
+def _anderson(
+    a: np.ndarray, da: np.ndarray, dx: np.ndarray, dr: np.ndarray, count: int, out: np.ndarray
+) -> None:
+    """Anderson-accelerated iterate from a, its step da = G(a) - a and the last ``count``
+    differences of iterates dx and of steps dr (rows): out = a + da - (dX + dR) gamma, gamma the
+    least-squares solution of dR gamma ~ da (regularised normal equations)."""
+    g = np.empty((count, count))
+    r = np.empty((count, 1))
+    trace = 0.0
+    for i in range(count):
+        acc = 0.0
+        for q in range(N_PARAMS):
+            acc += dr[i, q] * da[q]
+        r[i, 0] = acc
+        for j in range(count):
+            acc = 0.0
+            for q in range(N_PARAMS):
+                acc += dr[i, q] * dr[j, q]
+            g[i, j] = acc
+        trace += g[i, i]
+    for i in range(count):
+        g[i, i] += 1e-12 * trace  # the differences may be nearly dependent near convergence
+    for q in range(N_PARAMS):
+        out[q] = a[q] + da[q]
+    if not _solve(g, r):
+        return
+    for i in range(count):
+        for q in range(N_PARAMS):
+            out[q] -= r[i, 0] * (dx[i, q] + dr[i, q])
+
+
 @njit(cache=True)
 def _fit_one(
     xyz: np.ndarray,
@@ -505,39 +605,37 @@ def _fit_one(
     a: np.ndarray,
     v_out: np.ndarray,
     t_out: np.ndarray,
-) -> tuple[float, int, bool]:
+) -> tuple[float, int, int]:
     """Fit one quadric to the active rows of ``xyz`` (n, 3), already centred.
 
     ``var`` (3,) is diag(D_ii). ``a`` (10,) receives the parameters; ``v_out`` and ``t_out`` (n,)
-    receive v_i and T_i of the active rows (inactive rows are left untouched; with
-    ``t_first_only`` only row 0 gets T). Returns (sigma0, iterations, converged); sigma0 is NaN
-    and converged False when the system is singular or has no redundancy, and with 0 iterations
-    when the points are nearly collinear (:data:`COLLINEAR_RATIO`).
-
-    The fixed-point iteration a <- a + da(a) converges linearly. With ``accelerate`` every pair
-    of steps is extrapolated by SQUAREM (squared polynomial extrapolation); the fixed point, the
-    stopping rule (a plain step with ||da|| < tol) and the reported quantities (those of that last
-    plain step) are unchanged, only fewer steps are needed. An extrapolation whose next step is
-    longer than the plain step before it is rejected (back to the plain iterate).
-    ``iterations`` counts adjustments.
+    receive v_i (eq. 29) and T_i (eq. 31) of the active rows (inactive rows are left untouched;
+    with ``t_first_only`` only row 0 gets T). Returns (sigma0, iterations, status), status one
+    of CONVERGED, NOT_CONVERGED, COLLINEAR, SINGULAR, TOO_FEW_POINTS; sigma0 is NaN when the
+    last adjustment could not be solved. ``iterations`` counts adjustments over all stages.
+    The residuals and T are those of the last adjustment solved.
     """
     n = xyz.shape[0]
     n_act = 0
     for i in range(n):
         if active[i]:
             n_act += 1
-    if n_act <= DOF_LOSS or _nearly_collinear(xyz, active):
-        return math.nan, 0, False
-    _algebraic_start(xyz, active, a)
+    if n_act <= DOF_LOSS:
+        return math.nan, 0, TOO_FEW_POINTS
+    if _nearly_collinear(xyz, active):
+        return math.nan, 0, COLLINEAR
+    start = np.empty(N_PARAMS)
+    _algebraic_start(xyz, active, start)
 
     s = N_PARAMS + 1
     m = np.empty((s, s))
     m_last = np.empty((s, s))
     rhs = np.empty((s, 1))
     da = np.zeros(N_PARAMS)
-    da0 = np.zeros(N_PARAMS)
-    a_base = np.empty(N_PARAMS)
-    a_plain = np.empty(N_PARAMS)
+    a_prev = np.empty(N_PARAMS)
+    da_prev = np.empty(N_PARAMS)
+    dx = np.empty((ANDERSON_DEPTH, N_PARAMS))
+    dr = np.empty((ANDERSON_DEPTH, N_PARAMS))
     w = np.empty(n)
     p_w = np.empty(n)
     powers = np.empty((3, 5, _BLOCK))
@@ -547,40 +645,71 @@ def _fit_one(
     acc = np.empty(_N_MONO + N_PARAMS)
 
     iterations = 0
-    converged = False
-    first_of_pair = True
-    check_extrapolation = False
-    last_plain_step = math.inf
-    while iterations < max_iter:
-        iterations += 1
-        if not _adjust(xyz, active, var, a, m, m_last, rhs, w, p_w, powers, block_w, acc):
-            return math.nan, iterations, False
-        step = 0.0
-        for q in range(N_PARAMS):
-            da[q] = rhs[q, 0]
-            step += da[q] * da[q]
-        step = math.sqrt(step)
-        if check_extrapolation:
-            check_extrapolation = False
-            if step > last_plain_step and step >= tol:
-                # The extrapolated point is worse than the plain iterate it came from: go back.
-                a[:] = a_plain
-                first_of_pair = True
+    status = NOT_CONVERGED
+    solved = False  # the last adjustment could be solved (m_last, w, p_w, da are its)
+    first_stage = 0 if accelerate else 1
+    for stage in range(first_stage, 1 + len(DAMPING)):
+        a[:] = start
+        budget = stage_budget(max_iter, stage - first_stage, accelerate)
+        damping = 1.0 if stage == 0 else DAMPING[stage - 1]
+        count = 0  # Anderson history held
+        head = 0
+        have_prev = False
+        best = math.inf
+        guard = 0.5
+        for _ in range(budget):
+            iterations += 1
+            solved = _adjust(xyz, active, var, a, m, m_last, rhs, w, p_w, powers, block_w, acc)
+            if not solved:
+                break
+            step = 0.0
+            for q in range(N_PARAMS):
+                da[q] = rhs[q, 0]
+                step += da[q] * da[q]
+            step = math.sqrt(step)
+            if not step < math.inf:
+                solved = False
+                break
+            if step < tol:
+                for q in range(N_PARAMS):
+                    a[q] += da[q]
+                status = CONVERGED
+                break
+            if stage > 0:
+                for q in range(N_PARAMS):
+                    a[q] += damping * da[q]
                 continue
-        if first_of_pair:
-            a_base[:] = a
-            da0[:] = da
-        for q in range(N_PARAMS):
-            a[q] += da[q]
-        if step < tol:
-            converged = True
+            if step > 2.0 * best:
+                # The step grew: drop the history (this iterate becomes its base) and take a
+                # damped step.
+                count = 0
+                a_prev[:] = a
+                da_prev[:] = da
+                have_prev = True
+                for q in range(N_PARAMS):
+                    a[q] += guard * da[q]
+                guard = max(0.25, 0.5 * guard)
+                continue
+            best = min(best, step)
+            guard = 0.5
+            if have_prev:
+                for q in range(N_PARAMS):
+                    dx[head, q] = a[q] - a_prev[q]
+                    dr[head, q] = da[q] - da_prev[q]
+                head = (head + 1) % ANDERSON_DEPTH
+                count = min(count + 1, ANDERSON_DEPTH)
+            a_prev[:] = a
+            da_prev[:] = da
+            have_prev = True
+            if count == 0:
+                for q in range(N_PARAMS):
+                    a[q] += da[q]
+            else:
+                _anderson(a_prev, da_prev, dx[:count], dr[:count], count, a)
+        if status == CONVERGED:
             break
-        if accelerate and not first_of_pair:
-            a_plain[:] = a
-            last_plain_step = step
-            _squarem(a_base, da0, da, a)
-            check_extrapolation = True
-        first_of_pair = not first_of_pair
+    if not solved:
+        return math.nan, iterations, SINGULAR
 
     # Residuals (eq. 29) and their cofactors from the last adjustment solved.
     vpv = 0.0
@@ -604,7 +733,7 @@ def _fit_one(
             for q in range(N_PARAMS):
                 cols[q, i] = b[q]
     if not _solve(m_last, cols):
-        return math.nan, iterations, False
+        return math.nan, iterations, SINGULAR
     for i in range(n_rows):
         if not active[i]:
             continue
@@ -614,28 +743,18 @@ def _fit_one(
             bqb += b[q] * cols[q, i]
         q_vv = 1.0 / p_w[i] - bqb  # cofactor of v_i: 1/p_i - B_i Q_aa B_i^T
         t_out[i] = t_statistic(v_out[i], sigma0, q_vv, n_act - DOF_LOSS)
+    # eq. 19 exactly: a damped last step (a fit that did not converge) leaves ||a|| off 1.
+    norm = 0.0
+    for q in range(N_PARAMS):
+        norm += a[q] * a[q]
+    norm = math.sqrt(norm)
+    for q in range(N_PARAMS):
+        a[q] /= norm
     if _canonical_sign(a):
         for i in range(n):
             if active[i]:
                 v_out[i] = -v_out[i]  # v_i = F(a, x_i) changes sign with a
-    return sigma0, iterations, converged
-
-
-@njit(cache=True)
-def _squarem(a0: np.ndarray, r: np.ndarray, da1: np.ndarray, a: np.ndarray) -> None:
-    """SQUAREM extrapolation from a0 after steps r = G(a0) - a0 and da1: new iterate into ``a``."""
-    rr = 0.0
-    vv = 0.0
-    for q in range(N_PARAMS):
-        d = da1[q] - r[q]
-        rr += r[q] * r[q]
-        vv += d * d
-    if not vv > 0.0:
-        return
-    alpha = -math.sqrt(rr / vv)
-    alpha = min(max(alpha, -ALPHA_MAX), -1.0)
-    for q in range(N_PARAMS):
-        a[q] = a0[q] - 2.0 * alpha * r[q] + alpha * alpha * (da1[q] - r[q])
+    return sigma0, iterations, status
 
 
 @njit(cache=True, inline="always")
@@ -695,7 +814,7 @@ def _fit_patches(
     t: np.ndarray,
     sigma0: np.ndarray,
     iterations: np.ndarray,
-    converged: np.ndarray,
+    status: np.ndarray,
 ) -> None:
     """Patch j is points[index[j]], taken in the order ``order``: prange gives each thread one
     contiguous part of it, and an interleaved order (:func:`interleaved_order`) spreads the
@@ -709,12 +828,12 @@ def _fit_patches(
             patch[i] = points[index[j, i]]
         local = np.empty((k, 3))
         _centre(patch, active, local, centroid[j])
-        s0, it, ok = _fit_one(
+        s0, it, st = _fit_one(
             local, active, var, max_iter, tol, t_first_only, accelerate, params[j], v[j], t[j]
         )
         sigma0[j] = s0
         iterations[j] = it
-        converged[j] = ok
+        status[j] = st
 
 
 def interleaved_order(m: int, parts: int) -> np.ndarray:
@@ -736,7 +855,7 @@ def fit_quadrics(
     sigma: float | np.ndarray = 0.005,
     *,
     neighbours: np.ndarray | None = None,
-    max_iter: int = 50,
+    max_iter: int = 500,
     tol: float = 1e-10,
     t_first_only: bool = False,
     accelerate: bool = True,
@@ -753,15 +872,16 @@ def fit_quadrics(
         Patch j is ``patches[neighbours[j]]`` (gathered inside the parallel loop, so the m x k x 3
         copy is never made).
     max_iter : int
-        Adjustments solved at most per patch.
+        Adjustments solved at most per patch, over all stages of the iteration (see
+        :func:`stage_budget`).
     tol : float
         Convergence when ||da|| < tol.
     t_first_only : bool
         Compute T_i (eq. 31) only for the first point of each patch (the patch detector's tested
         point); the other entries of ``t_stat`` are NaN.
     accelerate : bool
-        SQUAREM extrapolation of the fixed-point iteration (same fixed point, fewer steps);
-        False gives the plain iteration step for step.
+        Begin with the Anderson-accelerated stage (same fixed points, fewer steps); False starts
+        with the plain iteration, step for step, followed by the damped restarts.
 
     Returns
     -------
@@ -789,14 +909,14 @@ def fit_quadrics(
     t = np.full((m, k), np.nan)
     sigma0 = np.full(m, np.nan)
     iterations = np.zeros(m, dtype=np.int64)
-    converged = np.zeros(m, dtype=np.bool_)
+    status = np.full(m, TOO_FEW_POINTS, dtype=np.int64)
     if m:
         _fit_patches(
             pts, index, interleaved_order(m, numba.get_num_threads()), _variances(sigma),
             int(max_iter), float(tol), bool(t_first_only), bool(accelerate), params, centroid,
-            v, t, sigma0, iterations, converged,
+            v, t, sigma0, iterations, status,
         )  # fmt: skip
-    return QuadricFit(params, centroid, v, t, sigma0, iterations, converged)
+    return QuadricFit(params, centroid, v, t, sigma0, iterations, status == CONVERGED, status)
 
 
 @njit(cache=True)
@@ -816,7 +936,8 @@ def fit_masked(
 
     The frame is the centroid of the active rows (written to ``centroid`` (3,)); ``var`` (3,) is
     diag(D_ii) of eq. 30. ``params`` (10,), ``v`` and ``t`` (n,) are outputs (eq. 29 residual and
-    eq. 31 T for active rows; inactive rows untouched). Returns (sigma0, iterations, converged).
+    eq. 31 T for active rows; inactive rows untouched). Returns (sigma0, iterations, status), status
+    one of CONVERGED, NOT_CONVERGED, COLLINEAR, SINGULAR, TOO_FEW_POINTS.
     Callable from other numba code (the section detector runs it per section in parallel).
     """
     local = np.empty((xyz.shape[0], 3))

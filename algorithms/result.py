@@ -19,8 +19,9 @@ class DetectorResult:
         and section); NaN where the point was not tested.
     flagged : (n,) bool
         True where the score exceeds the critical value.
-    critical_value : float
-        The threshold the score was compared against.
+    critical_value : float or (n,) float64
+        The threshold the score was compared against: one for all points, or one per point
+        (``section``: t(n - 9) of the fit that tested the point; NaN where untested).
     info : dict
         Resolved parameters and facts for the statistics (sigma estimates, points tested, ...).
         Values must be JSON-serialisable.
@@ -28,7 +29,7 @@ class DetectorResult:
 
     score: np.ndarray
     flagged: np.ndarray
-    critical_value: float
+    critical_value: float | np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
 
     @property

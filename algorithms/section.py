@@ -23,14 +23,24 @@ import numpy as np
 from algorithms.checks import check_xyz
 from algorithms.jit import njit, prange
 from algorithms.params import Parameters, param
-from algorithms.patch import SIGMA_DOC, Sigma, sigma_axes
-from algorithms.quadric import DOF_LOSS, N_PARAMS, fit_masked, min_patch_size
+from algorithms.patch import SIGMA_DOC, UNTESTED_REASONS, Sigma, sigma_axes, untested_reasons
+from algorithms.quadric import (
+    CONVERGED,
+    DOF_LOSS,
+    N_PARAMS,
+    TOO_FEW_POINTS,
+    fit_masked,
+    min_patch_size,
+)
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
 from algorithms.tiles import grid_cells, group_by_cell
 
-FIT_MAX_ITER = 100
+#: Adjustments per fit at most (over all stages, :func:`algorithms.quadric.stage_budget`) and the
+#: convergence tolerance on ||da||.
+FIT_MAX_ITER = 500
 FIT_TOL = 1e-8
+
 
 @dataclass(frozen=True)
 class SectionParameters(Parameters):
@@ -42,16 +52,20 @@ class SectionParameters(Parameters):
     max_iterations: int = param(10, "Refits per section at most.", ge=1, le=1000)
 
 
-# Section outcome codes (per section, for the statistics).
-_TESTED, _TOO_FEW, _NOT_CONVERGED = 0, 1, 2
+#: Section outcome: every remaining point tested (no outlier left, or ``max_iterations`` fits).
+_TESTED = 0
+#: Section outcome: the last fit stopped for the reason of its fit status (algorithms.quadric);
+#: the section's remaining points are untested. Codes 1 + status.
+_STOPPED = 1
 
 
 @njit(cache=True)
-def _untested(active: np.ndarray, score: np.ndarray) -> None:
+def _untested(active: np.ndarray, score: np.ndarray, critical: np.ndarray) -> None:
     """Points still in a section whose next fit cannot be made are untested (NaN)."""
     for i in range(active.shape[0]):
         if active[i]:
             score[i] = np.nan
+            critical[i] = np.nan
 
 
 @njit(cache=True)
@@ -63,12 +77,19 @@ def _one_section(
     max_fits: int,
     max_iter: int,
     tol: float,
+    accelerate: bool,
     score: np.ndarray,
+    critical: np.ndarray,
     flagged: np.ndarray,
-) -> tuple[int, int, int]:
-    """Iterative fit-and-remove on one section's points (n, 3); fills score and flagged (n,).
+) -> tuple[int, int, int, bool]:
+    """Iterative fit-and-remove on one section's points (n, 3); fills score, critical and
+    flagged (n,): each point's T_i (eq. 31) and the critical value t(n' - 9) it was compared
+    with, n' the points in that fit.
 
-    Returns (outcome code, fits made, adjustment iterations summed over the fits).
+    Returns (outcome, fits made, adjustment iterations summed over the fits, whether the last
+    fit still removed points, i.e. ``max_fits`` ended the refitting). outcome is _TESTED, or
+    _STOPPED + the quadric fit status that stopped it (TOO_FEW_POINTS when fewer than
+    ``min_points`` remain).
     """
     n = xyz.shape[0]
     active = np.ones(n, dtype=np.bool_)
@@ -79,21 +100,25 @@ def _one_section(
     n_active = n
     fits = 0
     iterations = 0
+    removed = 0
     for _ in range(max_fits):
         if n_active < min_points:
-            _untested(active, score)
-            return _TOO_FEW, fits, iterations
-        sigma0, it, ok = fit_masked(xyz, active, var, max_iter, tol, params, centroid, v, t)
+            _untested(active, score, critical)
+            return _STOPPED + TOO_FEW_POINTS, fits, iterations, False
+        sigma0, it, status = fit_masked(
+            xyz, active, var, max_iter, tol, params, centroid, v, t, accelerate
+        )
         fits += 1
         iterations += it
-        if not ok:
-            _untested(active, score)
-            return _NOT_CONVERGED, fits, iterations
+        if status != CONVERGED:
+            _untested(active, score, critical)
+            return _STOPPED + status, fits, iterations, False
         crit = crit_table[n_active - DOF_LOSS]
         removed = 0
         for i in range(n):
             if active[i]:
                 score[i] = t[i]
+                critical[i] = crit if t[i] == t[i] else np.nan  # NaN T: untested
                 if t[i] > crit:
                     flagged[i] = True
                     active[i] = False
@@ -101,7 +126,7 @@ def _one_section(
         n_active -= removed
         if removed == 0:
             break
-    return _TESTED, fits, iterations
+    return _TESTED, fits, iterations, removed > 0
 
 
 @njit(cache=True, parallel=True)
@@ -116,11 +141,14 @@ def _all_sections(
     max_fits: int,
     max_iter: int,
     tol: float,
+    accelerate: bool,
     score: np.ndarray,
+    critical: np.ndarray,
     flagged: np.ndarray,
     outcome: np.ndarray,
     fits: np.ndarray,
     iterations: np.ndarray,
+    capped: np.ndarray,
 ) -> None:
     """Run :func:`_one_section` on xyz[offsets[j]:offsets[j+1]] for every section j in parallel,
     one thread per bucket: bucket b holds the sections bucket_sections[bucket_offsets[b]:
@@ -129,9 +157,9 @@ def _all_sections(
         for s in range(bucket_offsets[b], bucket_offsets[b + 1]):
             j = bucket_sections[s]
             lo, hi = offsets[j], offsets[j + 1]
-            outcome[j], fits[j], iterations[j] = _one_section(
-                xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol,
-                score[lo:hi], flagged[lo:hi],
+            outcome[j], fits[j], iterations[j], capped[j] = _one_section(
+                xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol, accelerate,
+                score[lo:hi], critical[lo:hi], flagged[lo:hi],
             )  # fmt: skip
 
 
@@ -163,6 +191,7 @@ def detect_section(
     sigma: float | np.ndarray = 0.005,
     alpha: float = 0.001,
     max_iterations: int = 10,
+    accelerate: bool = True,
 ) -> DetectorResult:
     """Fit one quadric per square XY section and remove outliers iteratively.
 
@@ -179,13 +208,20 @@ def detect_section(
         points in the fit).
     max_iterations : int
         Fits per section at most.
+    accelerate : bool
+        Begin each fit with the Anderson-accelerated stage (:func:`algorithms.quadric.
+        fit_quadrics`); False takes the plain path with damped restarts only. Both reach the same
+        fixed points, but a fit that has several may end in another one; the accelerated path
+        converges on more sections (65 % of the points of a simulated mobile cloud tested
+        against 35 %).
 
     Returns
     -------
     DetectorResult
         score (n,) T_i (eq. 31) at removal or in the final fit, NaN where untested;
-        flagged (n,) points removed as outliers. ``critical_value`` is t(n - 9) for the median
-        section size (each section uses its own n).
+        flagged (n,) points removed as outliers; ``critical_value`` (n,) the t(n' - 9) each
+        point's T_i was compared with (n' the points in that fit; NaN where untested), so that
+        flagged == (score > critical_value) point by point.
     """
     SectionParameters(section_size=section_size, sigma=sigma, alpha=alpha,
                       max_iterations=max_iterations)
@@ -206,22 +242,35 @@ def detect_section(
     m = sizes.size
     xyz_sorted = np.ascontiguousarray(local[order])
     score_sorted = np.full(n, np.nan)
+    critical_sorted = np.full(n, np.nan)
     flagged_sorted = np.zeros(n, dtype=np.bool_)
     outcome = np.zeros(m, dtype=np.int64)
     fits = np.zeros(m, dtype=np.int64)
     iterations = np.zeros(m, dtype=np.int64)
+    capped = np.zeros(m, dtype=np.bool_)
     if m:
         bucket_offsets, bucket_sections = balanced_buckets(sizes, numba.get_num_threads())
         _all_sections(
             xyz_sorted, offsets, bucket_offsets, bucket_sections, var, crit_table, min_points,
-            int(max_iterations), FIT_MAX_ITER, FIT_TOL, score_sorted, flagged_sorted, outcome,
-            fits, iterations,
+            int(max_iterations), FIT_MAX_ITER, FIT_TOL, bool(accelerate), score_sorted,
+            critical_sorted,
+            flagged_sorted, outcome, fits, iterations, capped,
         )  # fmt: skip
     score = np.empty(n)
     score[order] = score_sorted
+    critical = np.empty(n)
+    critical[order] = critical_sorted
     flagged = np.empty(n, dtype=bool)
     flagged[order] = flagged_sorted
 
+    tested = ~np.isnan(score)
+    reasons = untested_reasons()
+    for code, name in UNTESTED_REASONS.items():
+        stopped = outcome == _STOPPED + code
+        reasons[name] += int(np.count_nonzero(~tested[order][np.repeat(stopped, sizes)]))
+    # T_i distrusted in a converged fit (cancellation in q_vv): degenerate geometry too.
+    in_tested_section = np.repeat(outcome == _TESTED, sizes)
+    reasons["degenerate_geometry"] += int(np.count_nonzero(~tested[order][in_tested_section]))
     median_n = int(np.median(sizes)) if m else 0
     crit_median = float(t_critical_value(alpha, median_n - DOF_LOSS)) if median_n > 9 else None
     n_fits = int(fits.sum())
@@ -231,15 +280,28 @@ def detect_section(
         "alpha": float(alpha),
         "max_iterations": int(max_iterations),
         "critical_value": crit_median,
-        "critical_value_note": "t(n-9) per section; the value shown is for the median section",
+        "critical_value_note": "t(n-9) of each fit, n the points in it; the value shown is for "
+                               "the median section's first fit",
         "min_points_per_section": int(min_points),
         "sections": int(m),
-        "sections_too_few_points": int((outcome == _TOO_FEW).sum()),
-        "sections_not_converged": int((outcome == _NOT_CONVERGED).sum()),
-        "points_tested": int((~np.isnan(score)).sum()),
+        "sections_untested": _sections_by_reason(outcome),
+        "points_tested": int(tested.sum()),
+        "points_untested": reasons,
+        "fits": n_fits,
+        "max_fits_per_section": int(fits.max()) if m else 0,
         "mean_fits_per_section": n_fits / m if m else None,
+        "sections_stopped_at_max_iterations": int(np.count_nonzero(capped)),
         "mean_iterations": float(iterations.sum()) / n_fits if n_fits else None,
         "fit_max_iterations": FIT_MAX_ITER,
         "fit_tolerance": FIT_TOL,
     }
-    return DetectorResult(score, flagged, crit_median if crit_median is not None else np.nan, info)
+    return DetectorResult(score, flagged, critical, info)
+
+
+def _sections_by_reason(outcome: np.ndarray) -> dict[str, int]:
+    """Sections whose refitting stopped with points untested, by the reason of the fit that
+    stopped it (the names of :func:`algorithms.patch.untested_reasons`)."""
+    out = untested_reasons()
+    for code, name in UNTESTED_REASONS.items():
+        out[name] += int(np.count_nonzero(outcome == _STOPPED + code))
+    return out

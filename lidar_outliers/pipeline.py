@@ -291,8 +291,18 @@ def _outlier_stage(
         "info": result.info,
         "points_tested": int(np.count_nonzero(result.tested)),
         "points_flagged": int(np.count_nonzero(flagged)),
-        "critical_value": result.critical_value,
+        "critical_value": _critical_summary(result.critical_value),
     }
+
+
+def _critical_summary(critical: float | np.ndarray) -> float | None:
+    """One number for the statistics: the critical value, or the median of per-point critical
+    values (``section`` compares each fit with t(n - 9) of its own n)."""
+    values = np.asarray(critical, dtype=np.float64)
+    if values.ndim == 0:
+        return float(values)
+    finite = values[np.isfinite(values)]
+    return float(np.median(finite)) if finite.size else None
 
 
 def _reference_truth(

@@ -55,7 +55,10 @@ def test_against_slow_reference():
     xyz = surface(rng, 1200, size=8.0)
     bad = rng.choice(1200, 12, replace=False)
     xyz[bad, 2] += rng.choice([-1, 1], 12) * rng.uniform(0.03, 2.0, 12)
-    res = detect_section(xyz, section_size=4.0, sigma=0.005, alpha=0.001, max_iterations=10)
+    # The reference takes the plain path with damped restarts: so does the detector here (the
+    # accelerated path may end in another stationary point of a refit).
+    res = detect_section(xyz, section_size=4.0, sigma=0.005, alpha=0.001, max_iterations=10,
+                         accelerate=False)
     score, flagged = slow_section(xyz, 4.0, 0.005, 0.001, 10)
     np.testing.assert_array_equal(res.flagged, flagged)
     np.testing.assert_array_equal(np.isnan(res.score), np.isnan(score))
@@ -63,7 +66,7 @@ def test_against_slow_reference():
     # Some sections of this curved, contaminated surface never converge (in both
     # implementations alike): they are untested, not wrong.
     assert tested.mean() > 0.5
-    # The detector stops at ||da|| < 1e-8 (accelerated), the reference at 1e-10 (plain).
+    # The detector stops at ||da|| < 1e-8, the reference at 1e-10.
     np.testing.assert_allclose(res.score[tested], score[tested], rtol=1e-4, atol=1e-4)
 
 
@@ -107,7 +110,9 @@ def test_sparse_section_is_untested():
     res = detect_section(xyz, section_size=5.0)
     assert np.isnan(res.score[2000:]).all()
     assert not res.flagged[2000:].any()
-    assert res.info["sections_too_few_points"] == 1
+    assert res.info["sections_untested"]["too_few_points"] == 1
+    assert res.info["points_untested"] == {"did_not_converge": 0, "degenerate_geometry": 0,
+                                           "too_few_points": 15}
     assert res.tested[:2000].all()
 
 
@@ -133,8 +138,43 @@ def test_info_reports_the_run():
     sizes = np.unique(cells, axis=0, return_counts=True)[1]
     assert info["critical_value"] == pytest.approx(stats.t.isf(0.005, int(np.median(sizes)) - 9))
     assert info["points_tested"] == int(res.tested.sum())
-    assert info["sections_not_converged"] == 0
+    assert info["sections_untested"]["did_not_converge"] == 0
+    assert sum(info["points_untested"].values()) == 3000 - info["points_tested"]
     assert 1 <= info["mean_fits_per_section"] <= 3
+    assert info["fits"] == round(info["mean_fits_per_section"] * 4)
+    assert 1 <= info["max_fits_per_section"] <= 3
+
+
+def test_each_point_is_flagged_against_the_critical_value_of_its_own_fit():
+    # Removals shrink a section, so later fits use t(n - 9) of a smaller n: the critical value
+    # is per point, and flagged == (score > critical) holds for every point.
+    rng = np.random.default_rng(8)
+    xyz = surface(rng, 2500, size=10.0)
+    huge = rng.choice(2500, 4, replace=False)
+    xyz[huge, 2] += 5.0
+    moderate = rng.choice(np.setdiff1d(np.arange(2500), huge), 30, replace=False)
+    xyz[moderate, 2] += rng.choice([-1, 1], 30) * rng.uniform(0.04, 0.2, 30)
+    res = detect_section(xyz, section_size=5.0, max_iterations=20)
+    critical = np.asarray(res.critical_value)
+    assert critical.shape == (2500,)
+    assert np.array_equal(np.isnan(critical), np.isnan(res.score))
+    tested = res.tested
+    np.testing.assert_array_equal(res.flagged[tested], res.score[tested] > critical[tested])
+    assert not res.flagged[~tested].any()
+    # Critical values are t(n - 9) of the fits' sizes: more than one distinct value per
+    # section when a refit removed points.
+    assert res.info["max_fits_per_section"] >= 2
+    assert np.unique(critical[tested]).size > 4
+    n_fit = 9 + np.round([_dof_of(c) for c in np.unique(critical[tested])])
+    assert (n_fit >= 26).all()  # never below the size where eq. 31 can flag anything
+    # The refitting stopped because a fit removed nothing, not at max_iterations.
+    assert res.info["sections_stopped_at_max_iterations"] == 0
+
+
+def _dof_of(critical: float, alpha: float = 0.001) -> float:
+    """The degrees of freedom whose two-sided t critical value at alpha is ``critical``."""
+    dof = np.arange(1, 5000)
+    return float(dof[np.argmin(np.abs(stats.t.isf(alpha / 2, dof) - critical))])
 
 
 @pytest.mark.parametrize(
