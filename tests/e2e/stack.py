@@ -107,6 +107,9 @@ def alive(pids: list[int]) -> list[int]:
 
 
 class RedisServer:
+    #: Databases of the test server: one per stack of the whole run (Redis's default is 16).
+    DATABASES = 256
+
     def __init__(self, folder: Path) -> None:
         self.port = free_port()
         folder.mkdir(parents=True, exist_ok=True)
@@ -115,7 +118,7 @@ class RedisServer:
             self.proc = subprocess.Popen(
                 [REDIS_SERVER, "--port", str(self.port), "--bind", "127.0.0.1", "--dir",
                  str(folder), "--save", "", "--appendonly", "yes", "--daemonize", "no",
-                 "--loglevel", "warning"],
+                 "--loglevel", "warning", "--databases", str(self.DATABASES)],
                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
             )
         try:
@@ -128,7 +131,7 @@ class RedisServer:
     def new_url(self) -> str:
         """A database of its own for each stack, so queues do not mix."""
         self._next_db += 1
-        assert self._next_db < 16
+        assert self._next_db < self.DATABASES, "more stacks than the test Redis has databases"
         return f"redis://127.0.0.1:{self.port}/{self._next_db}"
 
     def stop(self) -> None:
