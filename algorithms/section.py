@@ -27,7 +27,7 @@ from algorithms.patch import SIGMA_DOC, Sigma, sigma_axes
 from algorithms.quadric import DOF_LOSS, N_PARAMS, fit_masked, min_patch_size
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
-from algorithms.tiles import grid_cells, group_by_cell
+from algorithms.tiles import group_by_cell
 
 FIT_MAX_ITER = 100
 FIT_TOL = 1e-8
@@ -156,6 +156,15 @@ def balanced_buckets(sizes: np.ndarray, n_buckets: int) -> tuple[np.ndarray, np.
     return offsets.astype(np.int64), sections.astype(np.int64)
 
 
+def section_cells(xy: np.ndarray, size: float) -> np.ndarray:
+    """(n,) int64 label of each point's square section of a grid starting at XY (0, 0)."""
+    if xy.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    ij = np.floor(xy / size).astype(np.int64)
+    ij -= ij.min(axis=0)  # points left of the anchor get their own sections
+    return ij[:, 1] * (int(ij[:, 0].max()) + 1) + ij[:, 0]
+
+
 def detect_section(
     xyz: np.ndarray,
     *,
@@ -163,6 +172,7 @@ def detect_section(
     sigma: float | np.ndarray = 0.005,
     alpha: float = 0.001,
     max_iterations: int = 10,
+    anchor: np.ndarray | None = None,
 ) -> DetectorResult:
     """Fit one quadric per square XY section and remove outliers iteratively.
 
@@ -179,6 +189,9 @@ def detect_section(
         points in the fit).
     max_iterations : int
         Fits per section at most.
+    anchor : (2,) float, optional
+        XY corner where the grid of sections starts, in the frame of ``xyz`` (default: the
+        lower-left corner of the points), so that a part of a cloud keeps the whole's sections.
 
     Returns
     -------
@@ -194,8 +207,11 @@ def detect_section(
     n = pts.shape[0]
     min_points = max(min_patch_size(alpha), DOF_LOSS + 1)
 
-    local = pts - pts.min(axis=0) if n else pts
-    cell, _ = grid_cells(local[:, :2], float(section_size))
+    corner = pts.min(axis=0) if n else np.zeros(3)
+    if anchor is not None:  # z too stays put: a tile computes with the whole cloud's numbers
+        corner = np.r_[np.asarray(anchor, dtype=np.float64), 0.0]
+    local = pts - corner
+    cell = section_cells(local[:, :2], float(section_size))
     order, offsets = group_by_cell(cell)
     sizes = np.diff(offsets)
     max_n = int(sizes.max()) if sizes.size else 0

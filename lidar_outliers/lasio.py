@@ -431,7 +431,8 @@ def read_cloud(
         start = stop
         if progress is not None:
             progress(lo + (hi - lo) * stop / max(n, 1), f"reading {stop:,} of {n:,} points")
-    return Cloud(xyz, origin, gps, psid, cls, intensity)
+    anchor = np.asarray(header.mins[:2], dtype=np.float64) - origin[:2]
+    return Cloud(xyz, origin, gps, psid, cls, intensity, anchor=anchor)
 
 
 #: Points read for the profile choice (:func:`read_profile_sample`), whatever the file's size.

@@ -54,6 +54,29 @@ class StageModel(BaseModel):
 
 
 Run = Callable[[Cloud, Any], DetectorResult | GroundResult]
+#: XY metres a point's result may depend on around it, from the stage's parameters; None: the
+#: result depends on the whole cloud (or on its time series), so the stage is not run in tiles.
+Halo = Callable[[Any], "float | None"]
+#: (n,) metres of the neighbourhood each point of ``cloud`` actually used (k-th neighbour,
+#: search radius): for detectors whose reach depends on the data, checked against the halo.
+Reach = Callable[[Cloud, Any], np.ndarray]
+
+
+def no_halo(_params: Any) -> None:
+    """The default: not declared, so the stage runs on the whole cloud."""
+    return None
+
+
+def knn_reach(xyz: np.ndarray, k: int) -> np.ndarray:
+    """(n,) distance from each point to its k-th nearest point (itself counted first); inf where
+    the cloud has fewer than k points (every point then needs the whole cloud)."""
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    if n < k:
+        return np.full(n, np.inf)
+    dist, _ = cKDTree(xyz).query(xyz, k=[k], workers=-1)
+    return np.asarray(dist[:, 0], dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -63,6 +86,12 @@ class Detector:
     ``kind`` ``"outlier"`` sets bit ``flag_bit`` of ``outlier_flags`` and writes
     ``<name>_score``; ``"ground"`` writes classes 2/1 instead (no bit, no score). ``run`` gets
     the cloud and the stage's :class:`~algorithms.params.Parameters` instance.
+
+    ``halo(params)``: how far (XY metres) a point's result may depend on other points, so that
+    a tile run with that much of the neighbouring points around it gives the whole cloud's
+    result (:mod:`lidar_outliers.tiling`); None when it depends on the whole cloud. ``reach``:
+    for neighbourhoods set by the data (k nearest), the reach each point used; a tile whose
+    points reached further than the halo is run again with a wider one.
     """
 
     name: str
@@ -72,6 +101,8 @@ class Detector:
     kind: Literal["outlier", "ground"] = "outlier"
     flag_bit: int | None = None
     needs: tuple[str, ...] = ()
+    halo: Halo = no_halo
+    reach: Reach | None = None
     model: type[StageModel] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

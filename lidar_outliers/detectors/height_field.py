@@ -6,7 +6,7 @@ from __future__ import annotations
 from algorithms.height_field import HeightFieldParameters
 from algorithms.result import DetectorResult
 from lidar_outliers.cloud import Cloud
-from lidar_outliers.detectors.base import Detector
+from lidar_outliers.detectors.base import Detector, knn_reach
 
 
 def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
@@ -21,4 +21,7 @@ DETECTOR = Detector(
     run=run,
     summary="Leave-one-out local height fields with edge-aware half patches and robust sigma.",
     flag_bit=64,
+    # k nearest neighbours besides the point; sigma "auto" is estimated from the whole cloud
+    halo=lambda params: None if params.sigma == "auto" else 2.0,
+    reach=lambda cloud, params: knn_reach(cloud.xyz, params.k + 1),
 )
