@@ -156,7 +156,7 @@ def partition(
     scales = np.asarray(header.scales)
     n = int(header.point_count)
     has_gps = "gps_time" in set(header.point_format.dimension_names)
-    anchor = np.asarray(header.mins[:2], dtype=np.float64) - origin[:2]
+    anchor = lasio.local_anchor(header, grid)
     cells: dict[tuple[int, int], int] = {}
     t_lo, t_hi = math.inf, -math.inf
     start = 0
