@@ -94,7 +94,7 @@ def process_file(
         )
         if stats is not None:
             stats["seconds"] = {"total": round(time.perf_counter() - t0, 4)}
-            return _finish(stats, out_path, compress, stats_path, progress, traj_info)
+            return finish_statistics(stats, out_path, compress, stats_path, progress, traj_info)
     tiling_note = None
     if tile_size is not None and not tile_size > 0:
         raise ParameterError(f"tile_size must be > 0 metres, got {tile_size}")
@@ -104,7 +104,7 @@ def process_file(
                               compress=compress, progress=progress, chunk_points=chunk_points,
                               trajectory=traj)
         if isinstance(tiled, dict):
-            return _finish(tiled, out_path, compress, stats_path, progress, traj_info)
+            return finish_statistics(tiled, out_path, compress, stats_path, progress, traj_info)
         tiling_note = f"whole cloud in memory: {tiled}"
     # Up to STREAM_MIN_POINTS the point records stay in memory for the writer (one read and,
     # for LAZ, one decompression instead of two); larger files are read again.
@@ -140,7 +140,7 @@ def process_file(
         "write": round(t_write - t_detect, 4),
         "total": round(t_write - t0, 4),
     }
-    return _finish(stats, out_path, compress, stats_path, progress, traj_info)
+    return finish_statistics(stats, out_path, compress, stats_path, progress, traj_info)
 
 
 def _load_trajectory(
@@ -169,7 +169,7 @@ def _trajectory_use(stats: dict[str, Any], info: dict[str, Any]) -> dict[str, An
     return info
 
 
-def _finish(
+def finish_statistics(
     stats: dict[str, Any], out_path: Path, compress: bool,
     stats_path: str | os.PathLike[str] | None, progress: Progress | None,
     traj_info: dict[str, Any] | None = None,

@@ -24,7 +24,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -80,6 +80,9 @@ class TileSet:
     has_gps_time: bool
     cells: dict[tuple[int, int], int]  # (column, row) -> points
     gps_range: tuple[float, float] | None = None  # finite gps_time min, max (None: no finite)
+    #: Brings a cell's file into ``folder`` when it is not there (a worker that got the
+    #: manifest only fetches the cells its tile needs from the job's storage).
+    fetch: Callable[[tuple[int, int], Path], None] | None = None
 
     def cell_path(self, cell: tuple[int, int]) -> Path:
         return self.folder / cell_name(cell)
@@ -215,6 +218,8 @@ def read_cell(tiles: TileSet, cell: tuple[int, int]) -> np.ndarray:
     if cell not in tiles.cells:
         return np.zeros(0, dtype=POINT_DTYPE)
     path = tiles.cell_path(cell)
+    if tiles.fetch is not None and not path.exists():
+        tiles.fetch(cell, path)
     try:
         size = path.stat().st_size
         if size != tiles.cells[cell] * POINT_DTYPE.itemsize:

@@ -12,7 +12,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
@@ -26,6 +26,8 @@ from lidar_outliers.params import PipelineParams
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+#: Hands a job's tiles to the queue: ``dispatch(job_id, cells)`` (the worker's chord).
+Dispatch = Callable[[str, Sequence[tuple[int, int]]], None]
 
 #: Write progress to the store at most this often (seconds) unless the percentage changes.
 PROGRESS_INTERVAL = 0.5
@@ -57,8 +59,13 @@ def execute_job(
     settings: Settings, store: Store, job_id: str,
     time_limit_errors: tuple[type[BaseException], ...] = (),
     storage: Storage | None = None,
+    dispatch: Dispatch | None = None,
 ) -> JobStatus | None:
     """Run one delivery of a job; return its final status (None when there was nothing to do).
+
+    ``dispatch``: with it a job of more than ``TILE_JOB_POINTS`` points is cut into tiles that
+    any worker may run (:mod:`lidar_outliers.jobs.tiles`); the job is then still running when
+    this returns (``JobStatus.running``) and the merge of its tiles ends it.
 
     ``time_limit_errors``: exceptions that mean the job ran out of time (the queue's own soft
     time limit); the job then fails with a message naming the limit. ``storage``: where the
@@ -75,7 +82,7 @@ def execute_job(
             job_id, JobStatus.failed,
             f"the worker running this job died {job.attempts} times (killed, e.g. out of "
             "memory); the job is not retried",
-            stored_bytes=_quietly(storage.prefix_bytes, prefix),
+            stored_bytes=quietly(storage.prefix_bytes, prefix),
         )
         return JobStatus.failed
     started = store.transition(job_id, JobStatus.running, "reading the cloud",
@@ -86,36 +93,38 @@ def execute_job(
     layout.sweep_scratch(settings, older_than=settings.visibility_timeout)
     scratch = layout.scratch(settings, f"job-{job_id}")
     try:
-        stored = _run(settings, store, storage, job_id, scratch)
+        stored = _run(settings, store, storage, job_id, scratch, dispatch)
     except CancelledError:
-        _quietly(storage.delete_prefix, prefix)
+        quietly(storage.delete_prefix, prefix)
         if store.status(job_id) is JobStatus.dismissed:
             store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
     except LidarOutliersError as exc:
-        return _fail(store, storage, job_id, str(exc))
+        return fail_job(store, storage, job_id, str(exc))
     except MemoryError:
-        return _fail(store, storage, job_id, "the job ran out of memory")
+        return fail_job(store, storage, job_id, "the job ran out of memory")
     except time_limit_errors:
-        return _fail(store, storage, job_id,
+        return fail_job(store, storage, job_id,
                      f"the job exceeded the time limit of {settings.task_time_limit} s")
     except Exception as exc:
         log.exception("job %s failed", job_id)
-        return _fail(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}")
+        return fail_job(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+    if stored is None:
+        return JobStatus.running  # the tiles run on the workers; the merge ends the job
     done = store.transition(job_id, JobStatus.successful, "done", stored_bytes=stored)
     if done is None:  # dismissed while the result was being written
-        _quietly(storage.delete_prefix, prefix)
+        quietly(storage.delete_prefix, prefix)
         return JobStatus.dismissed
     return JobStatus.successful
 
 
 def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
-         scratch: Path) -> int:
+         scratch: Path, dispatch: Dispatch | None = None) -> int | None:
     """The pipeline over a local copy of the job's input; the statistics name the user's
     files. The result and the statistics are put into the storage when both are complete.
-    Returns the bytes the job now keeps."""
+    Returns the bytes the job now keeps, or None when its tiles were handed to the queue."""
     from lidar_outliers.process import process_file  # heavy imports (numba) only when run
 
     job = store.get_job(job_id)
@@ -128,6 +137,15 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
     if "trajectory" in job.facts:
         trajectory = scratch / "trajectory.txt"
         stored += storage.get_file(layout.trajectory_key(job_id), trajectory)
+    if dispatch is not None:
+        from lidar_outliers.jobs.tiles import split_job
+
+        cells = split_job(settings, store, storage, job_id, source, scratch,
+                          Progress(store, job_id))
+        if cells:
+            store.set_progress(job_id, 5, f"{len(cells)} tiles queued")
+            dispatch(job_id, cells)
+            return None
     stats = process_file(
         source,
         result,
@@ -147,22 +165,23 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
     return stored
 
 
-def _fail(store: Store, storage: Storage, job_id: str, message: str) -> JobStatus:
+def fail_job(store: Store, storage: Storage, job_id: str, message: str) -> JobStatus:
+    """Record the job as failed with ``message`` and remove any part of its result."""
     prefix = layout.job_prefix(job_id)
     if store.status(job_id) is JobStatus.dismissed:
         # the error came from the dismissal itself (e.g. the API removed the objects)
-        _quietly(storage.delete_prefix, prefix)
+        quietly(storage.delete_prefix, prefix)
         store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
     for name in layout.RESULT_NAMES:
-        _quietly(storage.delete, prefix + name)
+        quietly(storage.delete, prefix + name)
     # the storage may be what failed: the job is recorded as failed all the same
-    stored = _quietly(storage.prefix_bytes, prefix)
+    stored = quietly(storage.prefix_bytes, prefix)
     store.transition(job_id, JobStatus.failed, message, stored_bytes=stored)
     return JobStatus.failed
 
 
-def _quietly(action: Callable[[str], T], key: str) -> T | None:
+def quietly(action: Callable[[str], T], key: str) -> T | None:
     """Clean-up that must not hide the outcome being recorded: storage errors are logged."""
     try:
         return action(key)

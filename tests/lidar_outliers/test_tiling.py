@@ -21,7 +21,7 @@ from lidar_outliers.tiling import (
     partition,
     run_tile,
 )
-from tests.lasfiles import write_las
+from tests.lasfiles import tile_scene
 
 SENSOR = (600_012.0, 5_000_012.0, 52.0)
 TILE = 3.0  # metres: the box is 6 x 4 m, the sections 2 m, the patches about 1 m across
@@ -43,22 +43,7 @@ PIPELINES = {
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
-    """A sloped, rolling 24 x 24 m ground with a 2 m box on it, 1 % of points 1.5 m off the
-    surface, a few dark points, a drive's time stamps; near a UTM coordinate."""
-    rng = np.random.default_rng(3)
-    n = 7000
-    xy = rng.uniform(0, 24, (n, 2))
-    z = 0.05 * xy[:, 0] + 0.3 * np.sin(xy[:, 1] / 3) + rng.normal(0, 0.005, n)
-    z[(np.abs(xy[:, 0] - 12) < 3) & (np.abs(xy[:, 1] - 10) < 2)] += 2.0
-    off = rng.choice(n, 70, replace=False)
-    z[off] += rng.choice([-1.5, 1.5], off.size)
-    intensity = rng.integers(1, 50, n).astype(np.uint16)
-    intensity[rng.choice(n, 300, replace=False)] = 0
-    path = tmp_path_factory.mktemp("tiles") / "scene.las"
-    return write_las(path, np.column_stack([xy + [600_000, 5_000_000], z + 50]),
-                     gps_time=np.sort(rng.uniform(1000, 1100, n)),
-                     point_source_id=np.ones(n, np.uint16), intensity=intensity,
-                     offsets=(600_000, 5_000_000, 0), vlrs=())
+    return tile_scene(tmp_path_factory.mktemp("tiles") / "scene.las")
 
 
 def _results(path: Path) -> laspy.LasData:

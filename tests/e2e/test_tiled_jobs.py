@@ -1,0 +1,106 @@
+"""One job over two workers: a job of more than TILE_JOB_POINTS points is cut into tiles that
+both worker processes run, merged in the input's order: the same result as one machine. A
+corrupt tile fails the job with the tile's message and leaves nothing of a result."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from lidar_outliers.jobs.store import Store
+from lidar_outliers.process import process_file
+from tests.e2e.stack import RedisServer, Stack, running_stack, wait_for, wait_job
+from tests.lasfiles import tile_scene
+
+SENSOR = [600_012.0, 5_000_012.0, 52.0]
+PIPELINE = {"pipeline": [{"detector": "dror", "origin": SENSOR, "multiplier": 8.0},
+                         {"detector": "section", "section_size": 2.0},
+                         {"detector": "patch", "k": 30}]}
+
+
+@pytest.fixture(scope="module")
+def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
+          compiled_detectors: None) -> Iterator[Stack]:
+    with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url(), workers=2,
+                       tile_job_points=2000, tile_size=3.0) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def key(stack: Stack) -> str:
+    return stack.add_user("tiler")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tile_scene(tmp_path_factory.mktemp("in") / "scene.las")
+
+
+def submit(stack: Stack, key: str, path: Path) -> str:
+    with stack.client(key) as client:
+        answer = client.post("/processes/pipeline/execution",
+                             files={"file": (path.name, path.read_bytes())},
+                             data={"inputs": json.dumps(PIPELINE)})
+        assert answer.status_code == 201, answer.text
+        return answer.json()["jobID"]
+
+
+def tile_runs(stack: Stack) -> list[int]:
+    """Tile tasks each worker finished, from their logs."""
+    return [log.read_text().count("lidar_outliers.run_tile[") for log in
+            sorted(stack.logs.glob("worker*.log"))]
+
+
+def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, tmp_path):
+    job = submit(stack, key, scene)
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+        assert done["status"] == "successful", done["message"]
+        out = tmp_path / "service.las"
+        out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
+        stats = client.get(f"/jobs/{job}/results/statistics").json()
+    assert stats["mode"] == "tiled over workers"
+    assert stats["tiles"]["count"] >= 60 and stats["input"]["name"] == "scene.las"
+    assert all(runs > 0 for runs in tile_runs(stack)), tile_runs(stack)  # both took part
+    local = tmp_path / "local.las"
+    local_stats = process_file(scene, local, PIPELINE)
+    assert local_stats["mode"] == "in memory"
+    a, b = laspy.read(local), laspy.read(out)
+    assert (a.outlier_flags != 0).any()
+    assert np.array_equal(a.outlier_flags, b.outlier_flags)
+    assert np.array_equal(a.classification, b.classification)
+    for name in ("dror", "section", "patch"):
+        x, y = np.asarray(a[f"{name}_score"]), np.asarray(b[f"{name}_score"])
+        assert np.array_equal(np.isnan(x), np.isnan(y))
+        np.testing.assert_allclose(x[~np.isnan(x)], y[~np.isnan(y)], rtol=1e-5, atol=1e-5)
+    assert stats["overall"] == local_stats["overall"]
+    assert not (stack.data_dir / "jobs" / job / "tiles").exists()
+
+
+def test_a_corrupt_tile_fails_the_job_with_its_message(stack, key, scene):
+    store = Store(stack.data_dir / "service.sqlite3")
+    job = submit(stack, key, scene)
+    tiles = stack.data_dir / "jobs" / job / "tiles"
+    wait_for(lambda: (tiles / "tiles.json").exists(), 120, "the job's tiles", interval=0.02)
+    for cell in tiles.glob("cell_*.bin"):
+        with open(cell, "ab") as fh:
+            fh.write(b"not a point")
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+    assert done["status"] == "failed"
+    assert "tile file cell_" in done["message"] and "expected" in done["message"], done["message"]
+    # the chord's error callback ran: no tiles, no result, no statistics are left
+    wait_for(lambda: not tiles.exists(), 120, "the tiles to be removed")
+    assert not [p.name for p in (stack.data_dir / "jobs" / job).glob("result*")]
+    assert not (stack.data_dir / "jobs" / job / "statistics.json").exists()
+    assert store.get_job(job).status.value == "failed"
+    # the workers are free again: the next job runs to the end
+    again = submit(stack, key, scene)
+    with stack.client(key) as client:
+        assert wait_job(client, again, ("successful", "failed"), timeout=300)["status"] == (
+            "successful")
