@@ -5,6 +5,9 @@ corrupt tile fails the job with the tile's message and leaves nothing of a resul
 from __future__ import annotations
 
 import json
+import os
+import re
+import signal
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -14,7 +17,7 @@ import pytest
 
 from lidar_outliers.jobs.store import Store
 from lidar_outliers.process import process_file
-from tests.e2e.stack import RedisServer, Stack, running_stack, wait_for, wait_job
+from tests.e2e.stack import RedisServer, Stack, alive, running_stack, wait_for, wait_job
 from tests.lasfiles import tile_scene
 
 SENSOR = [600_012.0, 5_000_012.0, 52.0]
@@ -104,3 +107,36 @@ def test_a_corrupt_tile_fails_the_job_with_its_message(stack, key, scene):
     with stack.client(key) as client:
         assert wait_job(client, again, ("successful", "failed"), timeout=300)["status"] == (
             "successful")
+
+
+def test_a_tile_whose_worker_is_killed_is_run_again_and_only_it(stack, key, scene, tmp_path):
+    before = [log.read_text() for log in sorted(stack.logs.glob("worker*.log"))]
+    job = submit(stack, key, scene)
+    scratch = stack.data_dir / "scratch"
+
+    def tile_process() -> int | None:
+        """The pid of a process running one of the job's tiles (its scratch folder's name)."""
+        for folder in scratch.glob(f"tile-{job}-*"):
+            pid = int(folder.name.rsplit("-", 2)[1])
+            if pid in alive([pid]):
+                return pid
+        return None
+
+    victim = wait_for(tile_process, 120, "a tile to run", interval=0.01)
+    os.kill(victim, signal.SIGKILL)
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+        assert done["status"] == "successful", done["message"]
+        out = tmp_path / "service.las"
+        out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
+        count = client.get(f"/jobs/{job}/results/statistics").json()["tiles"]["count"]
+    logs = [log.read_text()[len(old):] for log, old in
+            zip(sorted(stack.logs.glob("worker*.log")), before, strict=True)]
+    received, succeeded = (
+        sum(len(re.findall(rf"lidar_outliers\.run_tile\[[^\]]+\] {what}", text)) for text in logs)
+        for what in ("received", "succeeded"))
+    assert succeeded == count
+    assert received == count + 1  # the killed tile twice, every other tile once
+    local = tmp_path / "local.las"
+    process_file(scene, local, PIPELINE)
+    assert np.array_equal(laspy.read(local).outlier_flags, laspy.read(out).outlier_flags)
