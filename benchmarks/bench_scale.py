@@ -117,9 +117,10 @@ def tiled_copy(base: Path, out: Path, points: int) -> int:
         copy = 0
         while written < points:
             take = min(n, points - written)
-            part = las.points[:take].copy()
-            part.x = np.asarray(part.x) + copy * width
-            part.gps_time = np.asarray(part.gps_time) + copy * span
+            part = laspy.ScaleAwarePointRecord(las.points.array[:take].copy(), las.point_format,
+                                               las.header.scales, las.header.offsets)
+            part.array["X"] += int(round(copy * width / las.header.scales[0]))
+            part.array["gps_time"] += copy * span
             writer.write_points(part)
             written += take
             copy += 1
@@ -233,7 +234,9 @@ def main(argv: list[str] | None = None) -> int:
     base_points = laspy.open(base).header.point_count
     big = folder / f"cloud_{args.points}.las"
     if not big.exists():
-        tiled_copy(base, big, args.points)
+        part = big.with_suffix(".part")
+        tiled_copy(base, part, args.points)
+        part.rename(big)
     print(f"cloud: {big} ({args.points:,} points, {big.stat().st_size / 1e6:,.0f} MB); "
           f"base {base_points:,} points; params {args.params or 'default pipeline'}")
     print("| run | points | seconds | points/s | peak RSS GB (largest process) | peak RSS GB "

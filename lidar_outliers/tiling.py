@@ -202,11 +202,15 @@ def _append_by_cell(rec: np.ndarray, ij: np.ndarray, folder: Path,
 # --------------------------------------------------------------------------- one tile
 
 
-def stage_halos(stages: Iterable[StageModel]) -> list[float] | str:
+def stage_halos(stages: Iterable[StageModel], trajectory: bool = False) -> list[float] | str:
     """Each stage's declared halo, or the reason the pipeline cannot run in tiles."""
     halos = []
     for stage in stages:
-        halo = get_detector(stage.detector).halo(stage.parameters())
+        spec = get_detector(stage.detector)
+        if trajectory and spec.uses_trajectory:
+            return (f"{stage.detector} with a trajectory follows beams across the whole cloud "
+                    "(free-space evidence)")
+        halo = spec.halo(stage.parameters())
         if halo is None:
             return f"{stage.detector} with these parameters depends on the whole cloud"
         halos.append(float(halo))
@@ -277,7 +281,7 @@ def run_tile(
     coordinates.
     """
     local_traj = None if trajectory is None else trajectory - np.r_[0.0, tiles.origin]
-    halos = stage_halos(stages)
+    halos = stage_halos(stages, trajectory is not None)
     if isinstance(halos, str):
         raise LidarOutliersError(f"the pipeline cannot run in tiles: {halos}")
     tile_params = params.model_copy(update={"pipeline": stages, "reference_classes": None})
@@ -488,7 +492,7 @@ def process_tiled(
         tiles = partition(in_path, work / "cells", tile_size, chunk_points=chunk_points,
                           progress=progress, progress_span=(0.0, 0.1))
         stages, note = resolve_stages(params, tiles.gps_probe(), facts.to_dict(), evidence)
-        halos = stage_halos(stages)
+        halos = stage_halos(stages, trajectory is not None)
         if isinstance(halos, str):
             return halos
         t_cut = time.perf_counter()

@@ -91,7 +91,8 @@ class Detector:
     a tile run with that much of the neighbouring points around it gives the whole cloud's
     result (:mod:`lidar_outliers.tiling`); None when it depends on the whole cloud. ``reach``:
     for neighbourhoods set by the data (k nearest), the reach each point used; a tile whose
-    points reached further than the halo is run again with a wider one.
+    points reached further than the halo is run again with a wider one. ``uses_trajectory``:
+    with a trajectory the detector follows beams across the cloud, so it does not run in tiles.
     """
 
     name: str
@@ -103,6 +104,7 @@ class Detector:
     needs: tuple[str, ...] = ()
     halo: Halo = no_halo
     reach: Reach | None = None
+    uses_trajectory: bool = False
     model: type[StageModel] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

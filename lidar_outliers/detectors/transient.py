@@ -77,6 +77,14 @@ def _free_space(
     return seen, info
 
 
+def reach(cloud: Cloud, params: TransientParameters) -> np.ndarray:
+    """How far each point's cluster test looks (:func:`algorithms.transient.transient_reach`)."""
+    from algorithms.transient import transient_reach
+
+    return transient_reach(cloud.xyz, cloud.require_gps_time("transient"), k=params.k,
+                           radius=params.radius, min_dt=params.min_dt)
+
+
 DETECTOR = Detector(
     name="transient",
     parameters=TransientParameters,
@@ -84,4 +92,9 @@ DETECTOR = Detector(
     summary="Clusters seen at one moment only and attached to nothing (moving objects).",
     flag_bit=128,
     needs=("gps_time",),
+    # a first guess; single-epoch clusters reach as far as they extend. Free-space evidence
+    # (with a trajectory) needs every beam that crosses a tile: not run in tiles.
+    halo=lambda params: 8 * params.radius,
+    reach=reach,
+    uses_trajectory=True,
 )

@@ -21,7 +21,7 @@ from lidar_outliers.tiling import (
     partition,
     run_tile,
 )
-from tests.lasfiles import tile_scene
+from tests.lasfiles import tile_scene, write_las
 
 SENSOR = (600_012.0, 5_000_012.0, 52.0)
 TILE = 3.0  # metres: the box is 6 x 4 m, the sections 2 m, the patches about 1 m across
@@ -79,13 +79,55 @@ def test_tiled_run_equals_whole_cloud(scene, tmp_path, name):
     assert not list(tmp_path.glob(".tiles-*"))  # the tile files are gone
 
 
+@pytest.fixture(scope="module")
+def moving(tmp_path_factory) -> Path:
+    """Ground seen at many moments, a few blobs seen at one moment each over it (moving
+    objects), and a 12 m band seen at one moment, four tiles long."""
+    rng = np.random.default_rng(5)
+    ground = np.column_stack([rng.uniform(0, 24, (3000, 2)), rng.normal(0, 0.01, 3000)])
+    t_ground = rng.uniform(0, 100, 3000)
+    blobs = [np.array([x, y, 1.0]) + rng.normal(0, 0.05, (40, 3))
+             for x, y in rng.uniform(2, 22, (6, 2))]
+    band = np.column_stack([np.linspace(4, 16, 400), 20 + rng.uniform(0, 0.3, 400),
+                            1.5 + rng.normal(0, 0.01, 400)])
+    xyz = np.vstack([ground, *blobs, band])
+    t = np.r_[t_ground, np.repeat(rng.uniform(0, 100, 6), 40) + rng.uniform(0, 0.1, 240),
+              50.0 + np.linspace(0, 0.2, 400)]
+    order = np.argsort(t)
+    return write_las(tmp_path_factory.mktemp("moving") / "moving.las",
+                     xyz[order] + [600_000, 5_000_000, 50], gps_time=t[order] + 1000,
+                     point_source_id=np.ones(len(t), np.uint16),
+                     offsets=(600_000, 5_000_000, 0), vlrs=())
+
+
+def test_transient_clusters_tiled_equal_whole(moving, tmp_path):
+    """A single-epoch band longer than a tile widens the halo until the band is whole."""
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    pipeline = {"pipeline": [{"detector": "transient"},
+                             {"detector": "height_field", "sigma": 0.01}]}
+    process_file(moving, whole, pipeline)
+    stats = process_file(moving, tiled, pipeline, tile_size=4.0)
+    assert stats["mode"] == "tiled" and stats["tiles"]["halo_max"] > 12.0
+    a, b = _results(whole), _results(tiled)
+    assert (np.asarray(a.outlier_flags) & 128).sum() >= 6 * 40 + 400
+    _assert_same(a, b, ["transient", "height_field"])
+
+
+def test_transient_with_a_trajectory_runs_whole_and_says_why(moving, tmp_path):
+    traj = np.column_stack([np.linspace(999, 1200, 50), np.linspace(600_000, 600_024, 50),
+                            np.full(50, 5_000_012.0), np.full(50, 52.0)])
+    stats = process_file(moving, tmp_path / "out.las", {"pipeline": [{"detector": "transient"}]},
+                         tile_size=TILE, trajectory=traj)
+    assert stats["mode"] == "in memory" and "free-space" in stats["tiling"]
+
+
 def test_every_detector_declares_whether_it_tiles():
     """A declared halo is a number of metres, or None (the stage runs on the whole cloud)."""
     for name, detector in DETECTORS.items():
         halo = detector.halo(detector.parameters())
         assert halo is None or halo >= 0, name
     tiled = {name for name, d in DETECTORS.items() if d.halo(d.parameters()) is not None}
-    assert {"patch", "section", "dror", "snow"} <= tiled
+    assert {"patch", "section", "dror", "snow", "transient"} <= tiled
 
 
 @pytest.mark.parametrize("name", [n for n, d in DETECTORS.items()
