@@ -271,7 +271,7 @@ def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = 
 
 def run_tile(
     tiles: TileSet, cell: tuple[int, int], params: PipelineParams, stages: list[StageModel],
-    trajectory: np.ndarray | None = None,
+    trajectory: np.ndarray | None = None, values_of: int | None = None,
 ) -> dict[str, Any]:
     """The pipeline's result for the points of ``cell``: the whole cloud's result for them.
 
@@ -279,23 +279,35 @@ def run_tile(
     stage, ``classification`` (with ``classify``), ``halo`` (metres used) and per stage its
     detector ``info`` and critical value (``stages``, JSON). ``trajectory``: (m, 4) in file
     coordinates.
+
+    ``values_of=i``: instead, the values stage i estimates a parameter from
+    (:class:`~lidar_outliers.detectors.base.Estimate`) for the points of the cell: ``index``
+    and ``values`` (NaN where none, and for points earlier stages flagged).
     """
     local_traj = None if trajectory is None else trajectory - np.r_[0.0, tiles.origin]
     halos = stage_halos(stages, trajectory is not None)
     if isinstance(halos, str):
         raise LidarOutliersError(f"the pipeline cannot run in tiles: {halos}")
-    tile_params = params.model_copy(update={"pipeline": stages, "reference_classes": None})
+    if values_of is not None:
+        stages, halos = stages[:values_of + 1], halos[:values_of + 1]
+    run = stages if values_of is None else stages[:-1]
+    tile_params = params.model_copy(update={"pipeline": run or None, "reference_classes": None})
     while True:
         total = float(sum(halos))
         rec, everything = load_region(tiles, cell, total)
         cloud = tile_cloud(tiles, rec, local_traj)
-        result = run_pipeline(cloud, tile_params)
+        result = run_pipeline(cloud, tile_params) if run else None
+        flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
         wider = None if everything else _reach_violations(
-            cloud, stages, halos, result.flags, outside_distance(cloud.xyz[:, :2], tiles, cell))
+            cloud, stages, halos, flags, outside_distance(cloud.xyz[:, :2], tiles, cell))
         if wider is None:
             break
         halos = wider
     core = np.all(cells_of(cloud.xyz[:, :2], tiles.anchor, tiles.tile_size) == cell, axis=1)
+    if values_of is not None:
+        return {"index": rec["index"][core], "halo": np.float64(sum(halos)),
+                "values": _stage_values(cloud, stages[-1], flags)[core]}
+    assert result is not None
     out: dict[str, Any] = {"index": rec["index"][core], "flags": result.flags[core],
                            "halo": np.float64(sum(halos))}
     for name, score in result.scores.items():
@@ -306,6 +318,47 @@ def run_tile(
         {"info": s.get("info"), "critical_value": s.get("critical_value")}
         for s in result.statistics["stages"]]))
     return out
+
+
+def _stage_values(cloud: Cloud, stage: StageModel, flags: np.ndarray) -> np.ndarray:
+    """(n,) the values a stage estimates from, on the points earlier stages left (NaN else)."""
+    estimate = get_detector(stage.detector).estimate
+    assert estimate is not None
+    out = np.full(len(cloud), np.nan)
+    index = np.flatnonzero(flags == 0)
+    if index.size:
+        sub = cloud if index.size == len(cloud) else cloud.subset(index)
+        out[index] = estimate.values(sub, stage.parameters())
+    return out
+
+
+def pending_estimate(stages: list[StageModel]) -> int | None:
+    """The first stage that still estimates a parameter from the whole cloud, if any."""
+    for i, stage in enumerate(stages):
+        estimate = get_detector(stage.detector).estimate
+        if estimate is not None and estimate.applies(stage.parameters()):
+            return i
+    return None
+
+
+def pin_stage(
+    tiles: TileSet, stage: StageModel, results: Iterable[dict[str, Any]], folder: Path,
+) -> tuple[StageModel, dict[str, Any]]:
+    """The stage with its estimate fixed from the tiles' values (gathered in file order on
+    disk), and the statistics' note on it."""
+    spec = get_detector(stage.detector)
+    assert spec.estimate is not None
+    folder.mkdir(parents=True, exist_ok=True)
+    values = np.lib.format.open_memmap(folder / f"values_{stage.detector}.npy", mode="w+",
+                                       dtype=np.float64, shape=(tiles.points,))
+    values[:] = np.nan
+    for res in results:
+        values[res["index"]] = res["values"]
+    step = 4_000_000
+    parts = [values[s:s + step] for s in range(0, tiles.points, step)]
+    pinned, info = spec.estimate.pin(stage.parameters(), parts)
+    del parts, values
+    return spec.stage(**pinned.as_dict()), info
 
 
 def _reach_violations(
@@ -413,9 +466,12 @@ def merge(
 def tiled_statistics(
     merged: Merged, tiles: TileSet, stages: list[StageModel], params: PipelineParams,
     facts: dict[str, Any], note: dict[str, Any], truth: np.ndarray | None,
+    estimated: dict[int, dict[str, Any]] | None = None,
+    given: list[StageModel] | None = None,
 ) -> dict[str, Any]:
     """The statistics of a tiled run: counts over all points, each stage's ``info`` and critical
-    value from the largest tile."""
+    value from the largest tile. ``estimated``: per stage index, what was estimated from the
+    whole cloud; ``given``: the stages as the job gave them (before estimates were fixed)."""
     flags = merged.flags
     earlier = FLAGS_DTYPE(0)
     entries = []
@@ -423,9 +479,11 @@ def tiled_statistics(
     for i, stage in enumerate(stages):
         spec = get_detector(stage.detector)
         stage_in = (flags & earlier) == 0
-        entry = stage_entry(stage, int(np.count_nonzero(stage_in)))
+        entry = stage_entry(given[i] if given else stage, int(np.count_nonzero(stage_in)))
         first = merged.tile_stages[biggest][i] if merged.tile_stages else {}
         entry["info"] = first.get("info")
+        if estimated and i in estimated and isinstance(entry["info"], dict):
+            entry["info"] = {**entry["info"], **estimated[i]}
         if spec.kind == "outlier":
             bit = FLAGS_DTYPE(spec.flag_bit)
             flagged = (flags & bit) != 0
@@ -492,10 +550,17 @@ def process_tiled(
         tiles = partition(in_path, work / "cells", tile_size, chunk_points=chunk_points,
                           progress=progress, progress_span=(0.0, 0.1))
         stages, note = resolve_stages(params, tiles.gps_probe(), facts.to_dict(), evidence)
+        given = list(stages)
         halos = stage_halos(stages, trajectory is not None)
         if isinstance(halos, str):
             return halos
         t_cut = time.perf_counter()
+        estimated: dict[int, dict[str, Any]] = {}
+        while (i := pending_estimate(stages)) is not None:
+            values = (run_tile(tiles, cell, params, stages, trajectory, values_of=i)
+                      for cell in sorted(tiles.cells))
+            pinned, estimated[i] = pin_stage(tiles, stages[i], values, work / "values")
+            stages = [*stages[:i], pinned, *stages[i + 1:]]
         results = []
         for k, cell in enumerate(sorted(tiles.cells)):
             path = work / "results" / result_name(cell)
@@ -511,7 +576,8 @@ def process_tiled(
                            classification=merged.classification, laz=compress,
                            chunk_points=chunk_points, progress=progress,
                            progress_span=(0.85, 1.0))
-        stats = tiled_statistics(merged, tiles, stages, params, facts.to_dict(), note, truth)
+        stats = tiled_statistics(merged, tiles, stages, params, facts.to_dict(), note, truth,
+                                 estimated, given)
         del merged, truth
     finally:
         shutil.rmtree(work, ignore_errors=True)

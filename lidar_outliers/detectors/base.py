@@ -62,6 +62,24 @@ Halo = Callable[[Any], "float | None"]
 Reach = Callable[[Cloud, Any], np.ndarray]
 
 
+@dataclass(frozen=True)
+class Estimate:
+    """A parameter the detector estimates from the whole cloud (``height_field``'s ``sigma:
+    auto``), made of values each point has from its neighbourhood alone.
+
+    ``applies(params)``: whether these parameters ask for the estimate. ``values(cloud,
+    params)``: (n,) float, each point's value (NaN: none). ``pin(params, parts)``: the
+    parameters with the estimate fixed, and the statistics' info on it, from the values of all
+    the points in file order (``parts``: consecutive pieces). A tiled run computes the values
+    tile by tile, pins, then runs the tiles with the pinned parameters: the whole cloud's
+    result.
+    """
+
+    applies: Callable[[Any], bool]
+    values: Callable[[Cloud, Any], np.ndarray]
+    pin: Callable[[Any, list[np.ndarray]], tuple[Any, dict[str, Any]]]
+
+
 def no_halo(_params: Any) -> None:
     """The default: not declared, so the stage runs on the whole cloud."""
     return None
@@ -105,6 +123,7 @@ class Detector:
     halo: Halo = no_halo
     reach: Reach | None = None
     uses_trajectory: bool = False
+    estimate: Estimate | None = None
     model: type[StageModel] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

@@ -31,6 +31,8 @@ RUN_JOB_TASK = "lidar_outliers.run_job"
 #: error callback that fails the job when a tile or the merge failed.
 RUN_TILE_TASK = "lidar_outliers.run_tile"
 MERGE_TILES_TASK = "lidar_outliers.merge_tiles"
+#: Fixes a parameter estimated from the whole cloud (job id, stage) from the tiles' values.
+PIN_TILES_TASK = "lidar_outliers.pin_tiles"
 TILES_FAILED_TASK = "lidar_outliers.tiles_failed"
 PRIORITY_STEPS = list(range(10))
 #: Priority of a user's n-th active job (capped at the lowest priority).

@@ -39,6 +39,8 @@ from lidar_outliers.tiling import (
     merge,
     noise_truth,
     partition,
+    pending_estimate,
+    pin_stage,
     result_name,
     run_tile,
     save_result,
@@ -80,7 +82,8 @@ def split_job(
     for cell in tiles.cells:
         storage.put_file(layout.tile_key(job_id, cell_name(cell)), tiles.cell_path(cell),
                          move=True)
-    manifest = {**tiles.to_json(), "stages": [s.model_dump(mode="json") for s in stages],
+    dumped = [s.model_dump(mode="json") for s in stages]
+    manifest = {**tiles.to_json(), "stages": dumped, "given": dumped, "estimated": {},
                 "note": note, "facts": facts.to_dict()}
     path = scratch / MANIFEST
     path.write_text(json.dumps(manifest))
@@ -115,9 +118,63 @@ def _stages(params: PipelineParams, doc: dict[str, Any]) -> tuple[PipelineParams
     return resolved, list(stages)
 
 
+def values_name(stage: int, cell: Cell) -> str:
+    return f"values_{stage}_{cell[0]}_{cell[1]}.npz"
+
+
+def pending_phase(storage: Storage, job_id: str) -> tuple[int | None, bool]:
+    """The stage whose estimate the job's tiles must gather first (None: the tiles run), and
+    whether a round of estimates came before."""
+    doc = json.loads(storage.read_bytes(layout.tile_key(job_id, MANIFEST)))
+    return pending_estimate(_stages(PipelineParams(), doc)[1]), bool(doc.get("estimated"))
+
+
+def job_cells(storage: Storage, job_id: str) -> list[Cell]:
+    doc = json.loads(storage.read_bytes(layout.tile_key(job_id, MANIFEST)))
+    return [(int(c), int(r)) for c, r, _ in doc["cells"]]
+
+
+def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: str,
+                  stage: int) -> bool:
+    """Fix stage ``stage``'s estimate from every tile's values and record it in the manifest;
+    False when the job is no longer running or the stage is fixed already (a re-run)."""
+    job = store.get_job(job_id)
+    if job is None or job.status is not JobStatus.running:
+        return False
+    scratch = layout.scratch(settings, f"pin-{job_id}")
+    try:
+        tiles, doc = _manifest(storage, job_id, scratch / "cells")
+        params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
+        if pending_estimate(stages) != stage:
+            return False
+
+        def values() -> Any:
+            for cell in sorted(tiles.cells):
+                path = scratch / values_name(stage, cell)
+                try:
+                    storage.get_file(layout.tile_key(job_id, path.name), path)
+                except ObjectMissing:
+                    raise TileError(f"tile {cell_name(cell)} has no values") from None
+                yield load_result(path)
+                path.unlink()
+
+        pinned, info = pin_stage(tiles, stages[stage], values(), scratch / "values")
+        doc["stages"][stage] = pinned.model_dump(mode="json")
+        doc["estimated"][str(stage)] = info
+        path = scratch / MANIFEST
+        path.write_text(json.dumps(doc))
+        storage.put_file(layout.tile_key(job_id, MANIFEST), path, move=True)
+        for cell in tiles.cells:
+            quietly(storage.delete, layout.tile_key(job_id, values_name(stage, cell)))
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return True
+
+
 def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str,
-                 cell: Cell) -> bool:
-    """Run one tile of a running job and put its result (replacing an earlier run's).
+                 cell: Cell, values_of: int | None = None) -> bool:
+    """Run one tile of a running job and put its result (replacing an earlier run's); with
+    ``values_of``, the values that stage estimates a parameter from instead.
 
     Returns False when the job is no longer running (dismissed, or failed by another tile).
     Raises what the tile raised; the caller fails the job with it.
@@ -131,8 +188,9 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
         params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
         if tuple(cell) not in tiles.cells:
             raise TileError(f"the job has no tile {cell_name(tuple(cell))}")
-        result = run_tile(tiles, tuple(cell), params, stages)
-        path = scratch / result_name(tuple(cell))
+        result = run_tile(tiles, tuple(cell), params, stages, values_of=values_of)
+        path = scratch / (result_name(tuple(cell)) if values_of is None
+                          else values_name(values_of, tuple(cell)))
         save_result(path, result)
         storage.put_file(layout.tile_key(job_id, path.name), path, move=True)
     finally:
@@ -199,7 +257,10 @@ def _merge(storage: Storage, job_id: str, job: Any, scratch: Path, progress: Pro
                        classification=merged.classification, laz=job.laz,
                        progress=progress, progress_span=(0.9, 0.99))
     facts = dict(doc["facts"], name=job.facts.get("name", doc["facts"].get("name")))
-    stats = tiled_statistics(merged, tiles, stages, params, facts, doc["note"], truth)
+    given = list(PipelineParams.model_validate({"pipeline": doc["given"]}).pipeline or [])
+    estimated = {int(k): v for k, v in doc.get("estimated", {}).items()}
+    stats = tiled_statistics(merged, tiles, stages, params, facts, doc["note"], truth,
+                             estimated, given)
     stats["mode"] = "tiled over workers"
     del merged, truth
     stats = finish_statistics(stats, out, job.laz, None, None)

@@ -44,11 +44,16 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tile_scene(tmp_path_factory.mktemp("in") / "scene.las")
 
 
-def submit(stack: Stack, key: str, path: Path) -> str:
+#: transient, then height_field with sigma estimated from the whole cloud: a round of tiles
+#: gathers the residuals, one task fixes sigma, a second round runs the pipeline.
+ESTIMATED = {"pipeline": [{"detector": "transient"}, {"detector": "height_field"}]}
+
+
+def submit(stack: Stack, key: str, path: Path, inputs: dict | None = None) -> str:
     with stack.client(key) as client:
         answer = client.post("/processes/pipeline/execution",
                              files={"file": (path.name, path.read_bytes())},
-                             data={"inputs": json.dumps(PIPELINE)})
+                             data={"inputs": json.dumps(inputs or PIPELINE)})
         assert answer.status_code == 201, answer.text
         return answer.json()["jobID"]
 
@@ -59,8 +64,9 @@ def tile_runs(stack: Stack) -> list[int]:
             sorted(stack.logs.glob("worker*.log"))]
 
 
-def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, tmp_path):
-    job = submit(stack, key, scene)
+@pytest.mark.parametrize("inputs", [PIPELINE, ESTIMATED], ids=["tiles", "estimate first"])
+def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, tmp_path, inputs):
+    job = submit(stack, key, scene, inputs)
     with stack.client(key) as client:
         done = wait_job(client, job, ("successful", "failed"), timeout=300)
         assert done["status"] == "successful", done["message"]
@@ -71,17 +77,21 @@ def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, t
     assert stats["tiles"]["count"] >= 60 and stats["input"]["name"] == "scene.las"
     assert all(runs > 0 for runs in tile_runs(stack)), tile_runs(stack)  # both took part
     local = tmp_path / "local.las"
-    local_stats = process_file(scene, local, PIPELINE)
+    local_stats = process_file(scene, local, inputs)
     assert local_stats["mode"] == "in memory"
     a, b = laspy.read(local), laspy.read(out)
     assert (a.outlier_flags != 0).any()
     assert np.array_equal(a.outlier_flags, b.outlier_flags)
     assert np.array_equal(a.classification, b.classification)
-    for name in ("dror", "section", "patch"):
+    for name in (s["detector"] for s in inputs["pipeline"]):
         x, y = np.asarray(a[f"{name}_score"]), np.asarray(b[f"{name}_score"])
         assert np.array_equal(np.isnan(x), np.isnan(y))
         np.testing.assert_allclose(x[~np.isnan(x)], y[~np.isnan(y)], rtol=1e-5, atol=1e-5)
     assert stats["overall"] == local_stats["overall"]
+    for remote, here in zip(stats["stages"], local_stats["stages"], strict=True):
+        assert remote["params"] == here["params"]
+        if "sigma_source" in here["info"]:
+            assert remote["info"]["sigma"] == pytest.approx(here["info"]["sigma"], rel=1e-9)
     assert not (stack.data_dir / "jobs" / job / "tiles").exists()
 
 

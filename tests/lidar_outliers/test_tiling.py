@@ -33,6 +33,7 @@ PIPELINES = {
     "dror": [{"detector": "dror", "origin": SENSOR, "multiplier": 8.0}],
     "snow": [{"detector": "snow", "origin": SENSOR, "multiplier": 20.0}],
     "height_field": [{"detector": "height_field", "sigma": 0.01}],
+    "height_field, sigma auto": [{"detector": "height_field"}],
     "height_field, then patch": [{"detector": "height_field", "sigma": 0.01},
                                  {"detector": "patch", "k": 30}],
     "dror, then section": [
@@ -77,6 +78,10 @@ def test_tiled_run_equals_whole_cloud(scene, tmp_path, name):
             st["points_in"], st["points_tested"], st["points_flagged"])
     assert stats["overall"] == stats_whole["overall"]
     assert not list(tmp_path.glob(".tiles-*"))  # the tile files are gone
+    for sw, st in zip(stats_whole["stages"], stats["stages"], strict=True):
+        if "sigma_source" in sw["info"]:  # estimated from the whole cloud either way
+            assert st["info"]["sigma_source"] == sw["info"]["sigma_source"]
+            assert st["info"]["sigma"] == pytest.approx(sw["info"]["sigma"], rel=1e-9)
 
 
 @pytest.fixture(scope="module")
@@ -103,8 +108,7 @@ def moving(tmp_path_factory) -> Path:
 def test_transient_clusters_tiled_equal_whole(moving, tmp_path):
     """A single-epoch band longer than a tile widens the halo until the band is whole."""
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
-    pipeline = {"pipeline": [{"detector": "transient"},
-                             {"detector": "height_field", "sigma": 0.01}]}
+    pipeline = {"pipeline": [{"detector": "transient"}, {"detector": "height_field"}]}
     process_file(moving, whole, pipeline)
     stats = process_file(moving, tiled, pipeline, tile_size=4.0)
     assert stats["mode"] == "tiled" and stats["tiles"]["halo_max"] > 12.0
