@@ -1,10 +1,11 @@
 """The `section` detector: algorithm (c) of Leslar, Wang & Hu (2010).
 
 The cloud is cut into square XY sections of ``section_size`` metres (grid anchored at the
-lower-left corner of the cloud's bounding box). One quadric (eqs. 18-31, :mod:`algorithms.quadric`)
-is fitted per section; the points whose T_i (eq. 31) exceeds the two-sided critical value of
-t(n - 9), n the points still in the section, are removed together and the surface is fitted again
-from a fresh algebraic start, until a fit removes nothing or ``max_iterations`` fits were made.
+lower-left corner of the cloud's bounding box, or at a given ``anchor``). One quadric (eqs. 18-31,
+:mod:`algorithms.quadric`) is fitted per section; the points whose T_i (eq. 31) exceeds the
+two-sided critical value of t(n - 9), n the points still in the section, are removed together and
+the surface is fitted again from a fresh algebraic start, until a fit removes nothing or
+``max_iterations`` fits were made.
 
 Scores: a removed point keeps the T_i of the fit that removed it; a kept point gets its T_i in the
 last fit. A section that has fewer than the points needed for eq. 31 to flag anything at ``alpha``
