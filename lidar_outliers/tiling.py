@@ -384,8 +384,7 @@ def _reach_violations(
         index = np.flatnonzero(stage_in)
         if index.size == 0:
             continue
-        reach = spec.reach(cloud.subset(index), stage.parameters())
-        used = reach[needed[index]]
+        used = spec.reach(cloud.subset(index), stage.parameters(), needed[index])[needed[index]]
         worst = float(used.max()) if used.size else 0.0
         if worst > halos[i]:
             wider[i] = max(halos[i] * HALO_GROWTH, worst * 1.01) if math.isfinite(worst) else (

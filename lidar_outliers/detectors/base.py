@@ -58,8 +58,9 @@ Run = Callable[[Cloud, Any], DetectorResult | GroundResult]
 #: result depends on the whole cloud (or on its time series), so the stage is not run in tiles.
 Halo = Callable[[Any], "float | None"]
 #: (n,) metres of the neighbourhood each point of ``cloud`` actually used (k-th neighbour,
-#: search radius): for detectors whose reach depends on the data, checked against the halo.
-Reach = Callable[[Cloud, Any], np.ndarray]
+#: search radius), for the points of the (n,) bool mask (others: anything): for detectors
+#: whose reach depends on the data, checked against the halo.
+Reach = Callable[[Cloud, Any, np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -85,16 +86,20 @@ def no_halo(_params: Any) -> None:
     return None
 
 
-def knn_reach(xyz: np.ndarray, k: int) -> np.ndarray:
-    """(n,) distance from each point to its k-th nearest point (itself counted first); inf where
-    the cloud has fewer than k points (every point then needs the whole cloud)."""
+def knn_reach(xyz: np.ndarray, k: int, where: np.ndarray) -> np.ndarray:
+    """(n,) distance from each point of the mask ``where`` to its k-th nearest point (itself
+    counted first; 0 outside the mask); inf where the cloud has fewer than k points (every
+    point then needs the whole cloud)."""
     from scipy.spatial import cKDTree
 
     n = len(xyz)
     if n < k:
         return np.full(n, np.inf)
-    dist, _ = cKDTree(xyz).query(xyz, k=[k], workers=-1)
-    return np.asarray(dist[:, 0], dtype=np.float64)
+    out = np.zeros(n)
+    if np.any(where):
+        dist, _ = cKDTree(xyz).query(xyz[where], k=[k], workers=-1)
+        out[where] = dist[:, 0]
+    return out
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors.base import Detector
 
 
-def reach(cloud: Cloud, params: DrorParameters) -> np.ndarray:
+def reach(cloud: Cloud, params: DrorParameters, where: np.ndarray) -> np.ndarray:
     """Each point's search radius (metres; every point is queried)."""
     from algorithms.dror import dynamic_radius
 

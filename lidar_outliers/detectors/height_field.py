@@ -48,7 +48,7 @@ DETECTOR = Detector(
     # k nearest neighbours besides the point; sigma "auto" is estimated from every point's
     # residual first
     halo=lambda params: 2.0,
-    reach=lambda cloud, params: knn_reach(cloud.xyz, params.k + 1),
+    reach=lambda cloud, params, where: knn_reach(cloud.xyz, params.k + 1, where),
     estimate=Estimate(applies=lambda params: params.sigma == "auto", values=residuals,
                       pin=pin_sigma),
 )

@@ -12,7 +12,7 @@ from lidar_outliers.detectors.base import Detector
 from lidar_outliers.errors import MissingDimensionError
 
 
-def reach(cloud: Cloud, params: SnowParameters) -> np.ndarray:
+def reach(cloud: Cloud, params: SnowParameters, where: np.ndarray) -> np.ndarray:
     """Each point's search radius (metres; only the dark points are queried)."""
     from algorithms.dror import dynamic_radius
 

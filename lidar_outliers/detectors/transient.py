@@ -77,7 +77,7 @@ def _free_space(
     return seen, info
 
 
-def reach(cloud: Cloud, params: TransientParameters) -> np.ndarray:
+def reach(cloud: Cloud, params: TransientParameters, where: np.ndarray) -> np.ndarray:
     """How far each point's cluster test looks (:func:`algorithms.transient.transient_reach`)."""
     from algorithms.transient import transient_reach
 
