@@ -55,7 +55,7 @@ class Peaks:
             return
         for p in procs:
             try:
-                name = " ".join(p.cmdline()[1:4]) or p.name()
+                name = " ".join([p.name(), *p.cmdline()[1:4]])
                 rss = p.memory_info().rss
             except psutil.Error:
                 continue
