@@ -55,9 +55,10 @@ POINT_DTYPE = np.dtype([
     ("xyz", "<f8", (3,)), ("gps_time", "<f8"), ("point_source_id", "<u2"),
     ("classification", "u1"), ("intensity", "<u2"), ("index", "<i8"),
 ])
-#: Points per core tile the automatic tile size aims at (about 0.7 GB for the default pipeline
-#: with its halo) and files up to which the whole cloud is run in memory instead.
-TILE_POINTS = 400_000
+#: Points per core tile the automatic tile size aims at at the mean density (denser parts of a
+#: file get more; a 617 k-point tile of the default pipeline peaked at 2.1 GB), and files up to
+#: which the whole cloud is run in memory instead.
+TILE_POINTS = 250_000
 WHOLE_CLOUD_POINTS = 1_500_000
 MANIFEST = "tiles.json"
 #: A tile whose points reach further than its halo is run again with the halo times this.
