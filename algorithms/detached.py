@@ -155,12 +155,13 @@ def envelope_scores(
 
 
 def _plane_residuals(
-    nb: np.ndarray, points: np.ndarray, lower_refit: bool = False
-) -> tuple[np.ndarray, np.ndarray]:
+    nb: np.ndarray, points: np.ndarray, lower_refit: bool = False, slope: bool = False
+) -> tuple[np.ndarray, ...]:
     """Residuals from the least-squares plane z = a + b x + c y of each neighbourhood.
 
     nb : (m, k, 3) neighbourhoods; points : (m, 3), one tested point per neighbourhood.
-    Returns (r, res): (m,) residual of each point and (m, k) residuals of its neighbours.
+    Returns (r, res): (m,) residual of each point and (m, k) residuals of its neighbours;
+    with ``slope`` also (m,) the plane's gradient sqrt(b^2 + c^2).
     ``lower_refit`` fits each plane again to the neighbours on or under the first plane's
     median residual (the lower surface; roofs and crowns over it do not tilt it).
     """
@@ -180,6 +181,8 @@ def _plane_residuals(
         weight = (res <= np.median(res, axis=1, keepdims=True)).astype(np.float64)
     p = points - centre[:, 0]
     r = p[:, 2] - (p[:, 0] * coef[:, 0] + p[:, 1] * coef[:, 1] + coef[:, 2])
+    if slope:
+        return r, res, np.hypot(coef[:, 0], coef[:, 1])
     return r, res
 
 
@@ -312,6 +315,7 @@ def floor_scores(
     quantile: float = 0.05,
     below: float = 1.0,
     reach: float = np.inf,
+    max_slope: float = np.inf,
 ) -> np.ndarray:
     """How far each candidate lies under the lowest surface around it, in units of ``below``.
 
@@ -320,7 +324,10 @@ def floor_scores(
     its ``k_floor`` nearest reference points in XY, fitted again to those on or under the first
     fit's median residual, gives residuals; the floor is their ``quantile``.
     Returns (n,) float64: (floor - r) / below for candidates within ``reach`` metres (XY) of a
-    reference point, where r is the candidate's residual; NaN elsewhere.
+    reference point, where r is the candidate's residual; NaN elsewhere. Where the floor
+    plane's gradient exceeds ``max_slope`` (no floor: e.g. a facade's lowest returns) the
+    candidate is compared with the lowest of those reference points instead: (lowest z - z) /
+    below.
     """
     score = np.full(len(xyz), np.nan)
     cand = np.flatnonzero(candidate)
@@ -334,9 +341,12 @@ def floor_scores(
         ci = cand[start:start + _BATCH]
         dist, j = tree.query(xyz[ci, :2], k=k)
         dist, j = dist.reshape(len(ci), k), j.reshape(len(ci), k)
-        r, res = _plane_residuals(xyz[reference[j]], xyz[ci], lower_refit=True)
+        r, res, grad = _plane_residuals(xyz[reference[j]], xyz[ci], lower_refit=True,
+                                        slope=True)
         floor = np.quantile(res, quantile, axis=1)
-        score[ci] = np.where(dist[:, 0] <= reach, (floor - r) / below, np.nan)
+        lowest = xyz[reference[j], 2].min(axis=1)
+        under = np.where(grad <= max_slope, floor - r, lowest - xyz[ci, 2])
+        score[ci] = np.where(dist[:, 0] <= reach, under / below, np.nan)
     return score
 
 

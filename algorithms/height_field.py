@@ -26,6 +26,22 @@ false alarms because one smooth surface cannot follow an edge. Here, for every p
 5. the score is the smallest term over the usable fits, in units of one ``sigma`` for the whole
    cloud (``"auto"``: the MAD of all full-patch studentised residuals, so no error is guessed).
 
+6. *under the lowest surface* (``low``): a return behind the surface its beam crossed is a
+   multi-path (mirror) return: a puddle or a window reflects the beam, and the range of the
+   longer path puts the point below the road (ASPRS class 7, low noise). Such returns come in
+   clumps that form their own surfaces, so steps 1-5 cannot see them; their clumps are apart
+   from the real surfaces. The cloud is cut into pieces joined through occupied voxels, at the
+   finest voxel size where the real surfaces are whole (:func:`algorithms.detached.
+   surface_scale`); the lowest return of each cell (two voxels wide) of the large pieces
+   samples the lowest surface where it spans an area (:func:`floor_cells`), and each point
+   of a small piece is compared with the floor plane of its 64 nearest cells
+   (:func:`algorithms.detached.floor_scores`): its score is how far it lies under the floor,
+   in sigmas. Only floors that are ground-like count
+   (gradient at most 1, 45 degrees, as ``one_sided``): a mobile scanner sees the road and
+   the sidewalks from above, while "the lowest return" of a facade seen over parked cars
+   is no floor; there the point is compared with the lowest of those cells instead (a
+   clump under everything around it is still low).
+
 A point is flagged when its score exceeds ``threshold``. The kernels (numba, parallel over points)
 are in :mod:`algorithms.height_field_fits`; the neighbour search is scipy's cKDTree. Both are
 imported when the detector runs, not with its parameters.
@@ -134,6 +150,71 @@ class HeightFieldParameters(Parameters):
     one_sided: bool = param(
         True, "On ground-like patches (normal within 45 degrees of vertical) count only points "
         "above the surface (early returns).")
+    low: bool = param(
+        True, "Also score clumps under the lowest ground-like surface around them (multi-path "
+        "mirror returns under the road).")
+
+
+#: Points per cell a piece needs to be a real surface for the ``low`` test (detached's).
+LOW_PIECE_POINTS = 1000
+#: Cells of the lowest surface for the floor plane, and its quantile (detached's defaults).
+LOW_K_FLOOR = 64
+LOW_FLOOR_QUANTILE = 0.05
+#: Steepest floor gradient that is ground-like (45 degrees, as ONE_SIDED_NZ).
+LOW_MAX_SLOPE = 1.0
+
+
+#: Of a floor cell's 8 neighbour cells, at least this many hold floor samples that continue
+#: its plane (5: a surface seen from above, or its edge; a wall's foot is a line, 2-4).
+FLOOR_NEIGHBOURS = 5
+
+
+def floor_cells(local: np.ndarray, index: np.ndarray, cell: float) -> np.ndarray:
+    """Indices of the lowest returns of ``local[index]`` per ``cell``-metre XY cell
+    (:func:`algorithms.detached.lowest_per_cell`) that sample a floor: a surface seen from
+    above spans an area, so at least FLOOR_NEIGHBOURS of the 8 neighbouring cells hold a lowest
+    return within LOW_MAX_SLOPE x their distance in height. The lowest returns of a facade
+    whose foot is hidden (by parked cars) form a line: left out.
+    """
+    from algorithms.detached import lowest_per_cell
+
+    lowest = lowest_per_cell(local, index, cell)
+    if lowest.size == 0:
+        return lowest
+    ij = np.floor((local[lowest, :2] - local[index, :2].min(axis=0)) / cell).astype(np.int64)
+    ij += 1
+    width = int(ij[:, 1].max()) + 2
+    key = ij[:, 0] * width + ij[:, 1]
+    order = np.argsort(key)
+    keys, z = key[order], local[lowest[order], 2]
+    support = np.zeros(lowest.size, dtype=np.int64)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di == 0 and dj == 0:
+                continue
+            want = keys + di * width + dj
+            pos = np.minimum(np.searchsorted(keys, want), keys.size - 1)
+            near = LOW_MAX_SLOPE * cell * np.hypot(di, dj)
+            support += (keys[pos] == want) & (np.abs(z[pos] - z) <= near)
+    return np.sort(lowest[order[support >= FLOOR_NEIGHBOURS]])
+
+
+def low_scores(local: np.ndarray, sigma: float) -> tuple[np.ndarray, dict]:
+    """(n,) how many sigmas each point of a small piece lies under the ground-like floor around
+    it (step 6 of the module docstring; NaN where untested) and the info."""
+    from algorithms.detached import floor_scores, surface_scale, xy_spacing
+
+    score = np.full(len(local), np.nan)
+    if len(local) <= LOW_PIECE_POINTS:
+        return score, {"voxel": None, "points_tested": 0}
+    voxel, small = surface_scale(local, LOW_PIECE_POINTS, start=xy_spacing(local))
+    if voxel is None or not small.any():
+        return score, {"voxel": voxel, "points_tested": 0}
+    reference = floor_cells(local, np.flatnonzero(~small), 2 * voxel)
+    score = floor_scores(local, small, reference, k_floor=LOW_K_FLOOR,
+                         quantile=LOW_FLOOR_QUANTILE, below=sigma, reach=4 * voxel,
+                         max_slope=LOW_MAX_SLOPE)
+    return score, {"voxel": float(voxel), "points_tested": int(np.isfinite(score).sum())}
 
 
 def detect_height_field(
@@ -144,6 +225,7 @@ def detect_height_field(
     threshold: float = 9.0,
     rms_weight: float = 0.5,
     one_sided: bool = True,
+    low: bool = True,
 ) -> DetectorResult:
     """Edge-aware leave-one-out height-field outlier test (see the module docstring).
 
@@ -156,6 +238,7 @@ def detect_height_field(
     threshold : score in units of sigma above which a point is flagged.
     rms_weight : weight of a fit's own residual standard error in its term (0: residual only).
     one_sided : on ground-like fits count only residuals above the surface.
+    low : also score small pieces under the lowest ground-like surface (step 6).
 
     Returns
     -------
@@ -163,13 +246,13 @@ def detect_height_field(
     fit is singular), flagged = score > threshold, critical_value = threshold.
     """
     HeightFieldParameters(k=k, sigma=sigma, threshold=threshold, rms_weight=rms_weight,
-                          one_sided=one_sided)
+                          one_sided=one_sided, low=low)
     from algorithms.height_field_fits import all_terms, scores_from_terms
 
     arr = check_xyz(xyz)
     n = len(arr)
     info: dict = {"k": int(k), "threshold": float(threshold), "rms_weight": float(rms_weight),
-                  "one_sided": bool(one_sided), "points": int(n)}
+                  "one_sided": bool(one_sided), "low": bool(low), "points": int(n)}
     if n == 0:
         info.update(sigma=None, sigma_source="none", points_tested=0, points_flagged=0)
         return DetectorResult(np.zeros(0), np.zeros(0, bool), float(threshold), info)
@@ -183,6 +266,10 @@ def detect_height_field(
         sig = float(np.finfo(float).eps * max(1.0, float(np.abs(local).max())))
     score = scores_from_terms(terms, sig, float(rms_weight), ONE_SIDED_NZ if one_sided else 2.0,
                               HALF_GATE, MAX_LEVERAGE)
+    if low:
+        under, info["low_test"] = low_scores(local, sig)
+        info["low_test"]["points_flagged"] = int(np.count_nonzero(under > threshold))
+        score = np.fmax(score, under)  # either test where the other did not apply
     flagged = score > threshold
     info.update(
         sigma=sig, sigma_source=source,

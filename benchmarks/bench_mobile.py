@@ -56,7 +56,7 @@ def run_one(condition: str, seed: int, scale: float) -> dict:
     fs = detect_free_space(cloud.xyz, origin)
     row["free_space_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    tr = detect_transient(cloud.xyz, cloud.gps_time)
+    tr = detect_transient(cloud.xyz, cloud.gps_time, cloud.point_source_id)
     row["transient_s"] = time.perf_counter() - start
     flags = {"height_field": hf.flagged, "free_space": fs.flagged, "transient": tr.flagged,
              "mobile": hf.flagged | fs.flagged | tr.flagged,

@@ -11,12 +11,16 @@
         print(api.statistics(job["jobID"])["overall"])
 
 Files go up and come down in chunks, never whole in memory; a download appears under its name
-only once complete. Every error, the server's or the connection's, raises :class:`ServiceError`
+only once complete. Uploads are resumable where the server speaks tus 1.0.0 (``/uploads/tus``):
+sent in pieces with checksums, continued from the server's offset after a dropped connection.
+Every error, the server's or the connection's, raises :class:`ServiceError`
 with the RFC 9457 problem document the server answered (``status``, ``title``, ``detail``).
 """
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import io
 import json
 import os
@@ -38,6 +42,11 @@ JobProgress = Callable[[dict[str, Any]], None]
 Source = str | os.PathLike[str]
 
 CHUNK = 1024**2
+#: Bytes per PATCH of a resumable upload: what a dropped connection costs at most.
+TUS_CHUNK = 8 * 1024**2
+TUS = {"Tus-Resumable": "1.0.0"}
+#: Failed PATCHes in a row (no byte gained) before a resumable upload gives up.
+TUS_ATTEMPTS = 6
 FINISHED = ("successful", "failed", "dismissed")
 _HREF = re.compile(r"^(?:https?://[^/]+)?/uploads/[0-9A-Za-z_-]+/?$")
 
@@ -103,8 +112,17 @@ class Client:
     """The service at ``server`` (``http://host:8000``) as the user whose API key is ``key``."""
 
     def __init__(self, server: str, key: str, *, timeout: float = 60.0,
-                 transport: httpx.BaseTransport | None = None) -> None:
+                 transport: httpx.BaseTransport | None = None,
+                 resumable: bool | None = None, chunk_bytes: int = TUS_CHUNK,
+                 retry_delay: float = 1.0) -> None:
+        """``resumable``: upload with tus (True), in one request (False), or tus when the server
+        offers it (None). ``chunk_bytes``: bytes per tus PATCH. ``retry_delay``: seconds before
+        the first retry of a failed PATCH (doubling up to 30 s)."""
         self.server = server.rstrip("/")
+        self._resumable = resumable
+        self._checksum = "sha1"
+        self.chunk_bytes = chunk_bytes
+        self.retry_delay = retry_delay
         self._http = httpx.Client(
             base_url=self.server, headers={"Authorization": f"Bearer {key}"},
             timeout=httpx.Timeout(timeout, connect=min(timeout, 10.0)), transport=transport)
@@ -138,16 +156,33 @@ class Client:
 
     # ---- files -------------------------------------------------------------------------------
 
+    def resumable(self) -> bool:
+        """Whether uploads go by tus: the server answers ``OPTIONS /uploads/tus`` with tus
+        1.0.0 (asked once; the checksum is sha256 when offered, else sha1)."""
+        if self._resumable is None:
+            try:
+                answer = self._http.options("/uploads/tus")
+            except httpx.TransportError as exc:
+                raise self._unreachable(exc) from None
+            versions = answer.headers.get("tus-version", "").replace(" ", "").split(",")
+            self._resumable = answer.is_success and "1.0.0" in versions
+            offered = answer.headers.get("tus-checksum-algorithm", "").replace(" ", "")
+            self._checksum = "sha256" if "sha256" in offered.split(",") else "sha1"
+        return self._resumable
+
     def upload(self, path: Source, *, kind: Literal["cloud", "trajectory"] = "cloud",
                progress: ByteProgress | None = None) -> dict[str, Any]:
-        """Store a file on the server for later jobs; returns ``{"id", "href", "name", "bytes",
-        "created"}``. ``kind="trajectory"`` for a trajectory text file.
+        """Store a file on the server for later jobs; returns ``{"id", "href", "name",
+        "bytes"}`` (and more). ``kind="trajectory"`` for a trajectory text file.
 
-        The body is read from the file as it is sent. The server takes an upload in one request
-        today; a resumable protocol would send from the offset the server confirms, which is
-        why the body starts at an offset (0 here).
+        With tus (:meth:`resumable`) the file goes in pieces of ``chunk_bytes``, each with its
+        checksum; after a dropped connection or a refused piece the upload continues from the
+        offset the server reports (``HEAD``), so nothing it holds is sent again. Otherwise the
+        file is one request, read as it is sent.
         """
         path = Path(path)
+        if self.resumable():
+            return self._upload_tus(path, kind, progress)
         size = path.stat().st_size
         return self._json(
             "POST", "/uploads", params={"name": path.name, "kind": kind},
@@ -156,6 +191,91 @@ class Client:
             timeout=httpx.Timeout(self._http.timeout.connect, read=None, write=None, pool=None),
         )
 
+    def _upload_tus(self, path: Path, kind: str,
+                    progress: ByteProgress | None) -> dict[str, Any]:
+        created = self.create_upload(path, kind)
+        self.resume(created["location"], path, progress)
+        return created
+
+    def create_upload(self, path: Source, kind: str = "cloud") -> dict[str, Any]:
+        """Create a tus upload for ``path`` (its size is reserved on the server); returns
+        ``{"id", "href", "name", "bytes", "location"}``: :meth:`resume` sends to
+        ``location``, jobs name ``href``."""
+        path = Path(path)
+        size = path.stat().st_size
+        meta = ",".join(f"{k} {base64.b64encode(v.encode()).decode()}"
+                        for k, v in (("filename", path.name), ("kind", kind)))
+        created = self._request("POST", "/uploads/tus", headers=TUS | {
+            "Upload-Length": str(size), "Upload-Metadata": meta})
+        info = created.json()
+        return {"id": info["id"], "href": info["href"], "name": info["name"], "bytes": size,
+                "location": created.headers["location"]}
+
+    def resume(self, location: str, path: Source,
+               progress: ByteProgress | None = None) -> int:
+        """Send ``path`` to the tus upload at ``location`` from the offset the server holds,
+        until complete; returns the bytes sent. Transient failures (dropped connection, 5xx,
+        409, 423, 460) are retried from the server's offset, up to TUS_ATTEMPTS in a row
+        without progress."""
+        path = Path(path)
+        size = path.stat().st_size
+        offset = self.upload_offset(location)
+        sent = failures = 0
+        delay = self.retry_delay
+        with open(path, "rb") as file:
+            while offset < size:
+                file.seek(offset)
+                piece = file.read(self.chunk_bytes)
+                digest = hashlib.new(self._checksum, piece).digest()
+                try:
+                    answer = self._http.patch(
+                        location, content=piece, headers=TUS | {
+                            "Content-Type": "application/offset+octet-stream",
+                            "Upload-Offset": str(offset),
+                            "Upload-Checksum": f"{self._checksum} "
+                                               f"{base64.b64encode(digest).decode()}"},
+                        timeout=httpx.Timeout(self._http.timeout.connect, read=None,
+                                              write=self._http.timeout.write, pool=None))
+                    failed: Exception | None = None if answer.is_success else _problem_of(answer)
+                except httpx.TransportError as exc:
+                    answer, failed = None, self._unreachable(exc)
+                sent += len(piece)
+                if failed is None and answer is not None:
+                    offset = int(answer.headers["upload-offset"])
+                    failures, delay = 0, self.retry_delay
+                    if progress is not None:
+                        progress(offset, size)
+                    continue
+                status = getattr(failed, "status", None)
+                if status is not None and status < 500 and status not in (409, 423, 460):
+                    raise failed  # type: ignore[misc]
+                failures += 1
+                if failures >= TUS_ATTEMPTS:
+                    raise failed  # type: ignore[misc]
+                time.sleep(delay)
+                delay = min(delay * 2, 30.0)
+                offset = self.upload_offset(location, retries=TUS_ATTEMPTS)
+        return sent
+
+    def upload_offset(self, location: str, retries: int = 1) -> int:
+        """The server's ``Upload-Offset`` of a tus upload (HEAD): the bytes it holds;
+        retried ``retries`` times while the server is unreachable."""
+        attempt = 0
+        while True:
+            try:
+                return int(self._request("HEAD", location, headers=TUS)
+                           .headers["upload-offset"])
+            except ServiceError as exc:
+                attempt += 1
+                if exc.status is not None or attempt >= retries:
+                    raise
+                time.sleep(min(self.retry_delay * 2**attempt, 30.0))
+
+    def delete_upload(self, upload: dict[str, Any] | str) -> None:
+        """Delete an upload (its id, href or the dict :meth:`upload` returned) made with tus."""
+        ident = upload["id"] if isinstance(upload, dict) else upload.rstrip("/").rsplit("/")[-1]
+        self._request("DELETE", f"/uploads/tus/{ident}", headers=TUS)
+
     def submit(self, source: Source, process: str = "pipeline",
                inputs: dict[str, Any] | None = None, trajectory: Source | None = None, *,
                progress: ByteProgress | None = None) -> dict[str, Any]:
@@ -163,20 +283,40 @@ class Client:
 
         ``source``: a LAS/LAZ file, or the ``href`` of an earlier :meth:`upload`. ``inputs``:
         the process's inputs (``GET /processes/{process}`` gives them). ``trajectory``: a file
-        of ``time x y z`` lines, or the href of a ``kind="trajectory"`` upload. Files go in one
-        multipart request, stored once on the server as the job's input.
+        of ``time x y z`` lines, or the href of a ``kind="trajectory"`` upload. Local files go
+        up resumably where the server offers it (:meth:`upload`), are named in the job
+        request, and deleted once the job holds its copy; otherwise they go in one multipart
+        request.
         """
         inputs = dict(inputs or {})
         url = f"/processes/{process}/execution"
-        if not _is_href(source) and (trajectory is None or not _is_href(trajectory)):
+        all_local = not _is_href(source) and (trajectory is None or not _is_href(trajectory))
+        if all_local and not self.resumable():
             return self._multipart(url, Path(source), inputs, trajectory, progress)
-        cloud = source if _is_href(source) else self.upload(source, progress=progress)["href"]
-        inputs["cloud"] = {"href": cloud}
-        if trajectory is not None:
-            href = trajectory if _is_href(trajectory) else self.upload(
-                trajectory, kind="trajectory")["href"]
-            inputs["trajectory"] = {"href": href}
-        return self._json("POST", url, json={"inputs": inputs})
+        made: list[dict[str, Any]] = []
+        try:
+            if _is_href(source):
+                cloud = str(source)
+            else:
+                made.append(self.upload(source, progress=progress))
+                cloud = made[-1]["href"]
+            inputs["cloud"] = {"href": cloud}
+            if trajectory is not None:
+                if not _is_href(trajectory):
+                    made.append(self.upload(trajectory, kind="trajectory"))
+                href = str(trajectory) if _is_href(trajectory) else made[-1]["href"]
+                inputs["trajectory"] = {"href": href}
+            return self._json("POST", url, json={"inputs": inputs})
+        finally:
+            for upload in made:  # the job has its own copy (or was refused)
+                if "location" in upload:
+                    self._forget(upload)
+
+    def _forget(self, upload: dict[str, Any]) -> None:
+        try:
+            self.delete_upload(upload)
+        except ServiceError:  # retention removes it later
+            pass
 
     def _multipart(self, url: str, path: Path, inputs: dict[str, Any],
                    trajectory: Source | None, progress: ByteProgress | None) -> dict[str, Any]:

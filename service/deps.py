@@ -14,11 +14,12 @@ from service.jobs import JobService
 _bearer = HTTPBearer(auto_error=False, description="An API key from `lidar-outliers users add`.")
 
 
-def get_settings(request: Request) -> Settings:
+# async: FastAPI runs a plain ``def`` dependency in the thread pool, a hop these do not need
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_service(request: Request) -> JobService:
+async def get_service(request: Request) -> JobService:
     return request.app.state.service
 
 
@@ -35,3 +36,5 @@ def current_user(
 
 
 UserDep = Annotated[User, Depends(current_user)]
+#: The key as documented in the OpenAPI schema, for routes that check it themselves.
+BearerDep = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]

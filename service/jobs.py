@@ -7,6 +7,7 @@ request body is checked on this host, then moved into the storage; results are r
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -19,6 +20,8 @@ from typing import Any, TypeVar
 from lidar_outliers import lasio, view
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import layout
+from lidar_outliers.jobs.diskspace import DiskFull, check_room, is_disk_full
+from lidar_outliers.jobs.documents import status_document  # noqa: F401 - routes import it here
 from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import (
     ObjectInfo,
@@ -42,7 +45,7 @@ from lidar_outliers.params import PipelineParams
 from lidar_outliers.tools.plot import render_preview
 from lidar_outliers.trajectory import describe_trajectory, read_trajectory
 from service import queue
-from service.problems import Problem, storage_unavailable
+from service.problems import Problem, insufficient_storage, storage_unavailable
 from service.processes import CLOUD_INPUT, TRAJECTORY_INPUT, preflight, resolve_inputs
 from service.uploads import too_large
 
@@ -121,6 +124,15 @@ class JobService:
     def incoming_dir(self) -> Path:
         return self.settings.incoming_dir
 
+    def check_room(self, incoming: int, *, received: bool = False) -> None:
+        """507 unless DATA_DIR's disk keeps MIN_FREE_BYTES free after ``incoming`` bytes and a
+        result as large (``received``: the file is on the disk already)."""
+        try:
+            check_room(self.settings.data_dir, incoming, self.settings.min_free_bytes,
+                       received=received)
+        except DiskFull as exc:
+            raise insufficient_storage(exc) from None
+
     # ---- uploads -----------------------------------------------------------------------------
 
     def store_upload(self, user: User, part: Path, name: str, kind: str = "cloud") -> Upload:
@@ -134,6 +146,7 @@ class JobService:
             else:
                 facts = las_facts(part, name)
                 suffix = ".laz" if facts.get("compressed") else ".las"
+            self.check_room(part.stat().st_size, received=True)
             upload_id = uuid.uuid4().hex
             key = layout.upload_key(user.id, upload_id, suffix)
             try:
@@ -220,7 +233,7 @@ class JobService:
     def submit(
         self, user: User, process_id: str, params: dict[str, Any], source: Path | Upload,
         name: str | None = None, *, trajectory: Path | Upload | None = None,
-        trajectory_name: str = "trajectory.txt",
+        trajectory_name: str = "trajectory.txt", subscriber: dict[str, str] | None = None,
     ) -> Job:
         """Create a job from a validated file and parameters and queue it.
 
@@ -228,7 +241,8 @@ class JobService:
         into the storage, and removed when refused) or a stored upload (copied inside the
         storage, so it serves further jobs). In order: the files are checked (415 / 422); the
         limits of active jobs (429) and stored bytes (413) are checked and the job recorded in
-        one transaction; its files are stored and it is queued. When that last step fails, the
+        one transaction (with ``subscriber``: its callback URIs, checked by the caller, and the
+        API's base URL); its files are stored and it is queued. When that last step fails, the
         job is failed and its bytes released (503)."""
         received = [p for p in (source, trajectory) if isinstance(p, Path)]
         try:
@@ -247,12 +261,14 @@ class JobService:
             laz = bool(facts.get("compressed"))
             size = sum(p.bytes if isinstance(p, Upload) else p.stat().st_size
                        for p in (source, trajectory) if p is not None)
+            self.check_room(size, received=True)  # room for the result
             try:
                 job = self.store.create_job(
                     user.id, process_id, params, facts, laz, stored_bytes=size,
                     job_id=os.urandom(16).hex(),
                     max_active=self.settings.max_active_jobs_per_user,
-                    max_stored_bytes=self.settings.max_stored_bytes_per_user)
+                    max_stored_bytes=self.settings.max_stored_bytes_per_user,
+                    subscriber=subscriber)
             except TooManyActiveJobs as exc:
                 raise self.too_many_jobs(exc.active) from None
             except QuotaExceeded as exc:
@@ -265,7 +281,7 @@ class JobService:
                 self.enqueue(job.id, min(job.active_before, 9))
             except Exception as exc:
                 self._abandon(job, exc)
-                if isinstance(exc, StorageError):
+                if isinstance(exc, StorageError) or is_disk_full(exc):
                     raise storage_unavailable(exc) from None
                 raise Problem(503, "service-unavailable",
                               f"the job queue (Redis) is not reachable: {exc}") from None
@@ -282,13 +298,26 @@ class JobService:
 
     def _abandon(self, job: Job, exc: Exception) -> None:
         """A recorded job that could not be stored or queued: failed, its bytes released."""
-        what = "store the input" if isinstance(exc, StorageError) else "queue the job"
+        stored = isinstance(exc, StorageError) or is_disk_full(exc)
+        what = "store the input" if stored else "queue the job"
         self.store.transition(job.id, JobStatus.failed, f"could not {what}: {exc}",
                               stored_bytes=0)
         try:
             self.storage.delete_prefix(layout.job_prefix(job.id))
         except StorageError:
             log.exception("could not remove the files of job %s", job.id)
+
+    def poll(self, authorization: str | None, job_id: str) -> Job:
+        """The caller's job ``job_id`` by key, in one database query (401, 404 otherwise)."""
+        scheme, _, key = (authorization or "").partition(" ")
+        if scheme.lower() != "bearer" or not key.strip():
+            self.authenticate(authorization)  # raises the 401 of a missing key
+        user, job = self.store.job_for_key(key.strip(), job_id)
+        if user is None:
+            self.authenticate(authorization)  # raises the 401 of a wrong key
+        if job is None:
+            raise Problem(404, "no-such-job", f"no job {job_id!r} of yours")
+        return job
 
     def get(self, user: User, job_id: str) -> Job:
         job = self.store.get_job(job_id)
@@ -430,8 +459,30 @@ class JobService:
         for part in self.incoming_dir.glob("*.part") if self.incoming_dir.exists() else []:
             if datetime.fromtimestamp(part.stat().st_mtime, UTC) < now - timedelta(days=1):
                 part.unlink(missing_ok=True)
+        removed += self.expire_resumables(now)
         layout.sweep_scratch(self.settings, older_than=self.settings.visibility_timeout)
         return removed
+
+
+    def expire_resumables(self, now: datetime | None = None, user_id: int | None = None) -> int:
+        """Delete unfinished resumable uploads past their expiry, which frees the bytes they
+        reserved, with their partial files on this host; also partial files of this host that
+        no record could still use (written to longer ago than any upload stays). Returns how
+        many records went."""
+        now = now or datetime.now(UTC)
+        stamp = now.isoformat(timespec="milliseconds").replace("+00:00", "Z")
+        expired = self.store.resumables_expired(stamp, user_id)
+        folder = self.settings.resumable_dir
+        for upload in expired:
+            self.store.delete_resumable(upload.id)
+            (folder / f"{upload.id}.part").unlink(missing_ok=True)
+        if user_id is None and folder.is_dir():
+            cutoff = now - timedelta(hours=self.settings.resumable_expiry_hours + 1)
+            for part in folder.glob("*.part"):
+                with contextlib.suppress(FileNotFoundError):
+                    if datetime.fromtimestamp(part.stat().st_mtime, UTC) < cutoff:
+                        part.unlink()
+        return len(expired)
 
 
 def trajectory_facts(path: Path, name: str) -> dict[str, Any]:
@@ -442,36 +493,3 @@ def trajectory_facts(path: Path, name: str) -> dict[str, Any]:
         raise Problem(422, "invalid-parameter", str(exc),
                       errors=[{"parameter": "trajectory", "message": str(exc)}]) from None
     return describe_trajectory(traj, name)
-
-
-def status_document(job: Job, base_url: str = "") -> dict[str, Any]:
-    """OGC API - Processes statusInfo plus the resolved inputs and the input file's facts."""
-    self_href = f"{base_url}/jobs/{job.id}"
-    links = [{"href": self_href, "rel": "self", "type": "application/json",
-              "title": "this document"}]
-    if job.status is JobStatus.successful:
-        links += [
-            {"href": f"{self_href}/results", "rel":
-             "http://www.opengis.net/def/rel/ogc/1.0/results", "type": "application/json",
-             "title": "results"},
-            {"href": f"{self_href}/results/cloud", "rel": "enclosure",
-             "type": "application/vnd.laszip" if job.laz else "application/vnd.las",
-             "title": "flagged cloud"},
-            {"href": f"{self_href}/results/statistics", "rel": "describedby",
-             "type": "application/json", "title": "statistics"},
-        ]
-    return {
-        "type": "process",
-        "jobID": job.id,
-        "processID": job.process_id,
-        "status": job.status.value,
-        "message": job.message,
-        "progress": job.progress,
-        "created": job.created,
-        "started": job.started,
-        "finished": job.finished,
-        "updated": job.finished or job.started or job.created,
-        "inputs": job.inputs,
-        "input_file": job.facts,
-        "links": links,
-    }

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from lidar_outliers.jobs.diskspace import DiskFull, is_disk_full
+
 OGC = "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
 MEDIA_TYPE = "application/problem+json"
 
@@ -22,6 +24,9 @@ PROBLEMS: dict[str, tuple[str, str]] = {
     "invalid-request": ("Invalid request", "The request body or query is malformed."),
     "unauthorized": ("Missing or wrong API key", "Send `Authorization: Bearer <key>`; "
                      "`lidar-outliers users add NAME` creates a key."),
+    "empty-file": ("Empty file", "The file sent has no bytes; send the LAS/LAZ file itself."),
+    "insufficient-storage": ("Insufficient storage", "The server's disk is full; try again "
+                             "later or ask its operator to free space."),
     "file-too-large": ("File too large", "Upload a smaller file or raise MAX_UPLOAD_BYTES."),
     "storage-quota-exceeded": ("Storage quota exceeded", "DELETE finished jobs to free space."),
     "unsupported-media-type": ("Not a LAS/LAZ file", "Send a LAS 1.0-1.4 or LAZ file."),
@@ -34,6 +39,22 @@ PROBLEMS: dict[str, tuple[str, str]] = {
                               "file's size (Content-Range: bytes */size), e.g. bytes=0-1023."),
     "service-unavailable": ("Service unavailable", "Redis, the workers, the database or the "
                             "file storage are not reachable."),
+    "no-such-upload": ("Unknown upload", "POST /uploads/tus creates one; another user's "
+                       "uploads are not visible."),
+    "upload-expired": ("Upload expired", "An unfinished upload is deleted "
+                       "RESUMABLE_EXPIRY_HOURS after its last PATCH; create a new one."),
+    "offset-mismatch": ("Offset mismatch", "HEAD the upload and PATCH from its Upload-Offset."),
+    "checksum-mismatch": ("Checksum mismatch", "The piece was dropped; PATCH it again from the "
+                          "same Upload-Offset."),
+    "unsupported-checksum": ("Checksum algorithm not supported", "OPTIONS /uploads/tus lists "
+                             "them in Tus-Checksum-Algorithm."),
+    "upload-locked": ("Upload busy", "Another request is writing to this upload; retry after "
+                      "Retry-After seconds from the Upload-Offset HEAD gives."),
+    "upload-length-exceeded": ("Past the upload's length", "Send no more than Upload-Length "
+                               "bytes in all."),
+    "tus-version": ("tus version not supported", "Send `Tus-Resumable: 1.0.0`."),
+    "wrong-content-type": ("Wrong content type", "PATCH bodies are "
+                           "`Content-Type: application/offset+octet-stream`."),
     "internal-error": ("Internal error", "Report it with the time of the request."),
 }
 OGC_SLUGS = {"no-such-process", "no-such-job", "result-not-ready"}
@@ -73,6 +94,15 @@ class Problem(Exception):
         }
 
 
+def insufficient_storage(exc: BaseException) -> Problem:
+    """507 for a disk that is full (or would be with the request's file)."""
+    detail = str(exc) if isinstance(exc, DiskFull) else f"the server's disk is full: {exc}"
+    return Problem(507, "insufficient-storage", detail)
+
+
 def storage_unavailable(exc: Exception) -> Problem:
-    """503 for a storage that failed (the API goes on; the client may retry)."""
+    """503 for a storage that failed (the API goes on; the client may retry); 507 when what
+    failed is a full disk."""
+    if is_disk_full(exc):
+        return insufficient_storage(exc)
     return Problem(503, "service-unavailable", f"the file storage is not usable: {exc}")

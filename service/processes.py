@@ -16,12 +16,16 @@ from pydantic import BaseModel, ConfigDict, ValidationError, create_model
 
 from lidar_outliers.detectors import DETECTORS
 from lidar_outliers.params import PipelineParams
+from service.oas30 import process_input_schema
 from service.problems import Problem
 
 PIPELINE = "pipeline"
 PIPELINE_LEVEL = ("classify", "noise_class", "reference_classes")
 #: The input that names the cloud in a JSON execute request; not a parameter.
 CLOUD_INPUT = "cloud"
+#: Every process runs asynchronously (the default), synchronously with ``Prefer: wait`` for
+#: clouds up to SYNC_MAX_POINTS, and its jobs can be dismissed.
+JOB_CONTROL_OPTIONS = ["sync-execute", "async-execute", "dismiss"]
 #: The optional trajectory file (multipart part of this name); not a parameter.
 TRAJECTORY_INPUT = "trajectory"
 
@@ -127,9 +131,7 @@ def describe(process_id: str, base_url: str = "") -> dict[str, Any]:
         "schema": {"type": "string", "contentMediaType": "text/plain"},
     }
     for name, prop in schema.get("properties", {}).items():
-        prop = dict(prop)
-        if defs:
-            prop["$defs"] = defs
+        prop = process_input_schema(prop, defs)
         inputs[name] = {
             "title": prop.get("title", name),
             "description": prop.pop("description", ""),
@@ -147,7 +149,7 @@ def describe(process_id: str, base_url: str = "") -> dict[str, Any]:
         "title": title,
         "description": doc,
         "version": "0.1.0",
-        "jobControlOptions": ["async-execute", "dismiss"],
+        "jobControlOptions": JOB_CONTROL_OPTIONS,
         "outputTransmission": ["reference"],
         "inputs": inputs,
         "outputs": {
@@ -166,6 +168,10 @@ def describe(process_id: str, base_url: str = "") -> dict[str, Any]:
             },
         },
         "links": [
+            {"href": f"{base_url}/processes/{process_id}", "rel": "self",
+             "type": "application/json", "title": "this document"},
+            {"href": f"{base_url}/processes/{process_id}?f=html", "rel": "alternate",
+             "type": "text/html", "title": "this document as HTML"},
             {"href": f"{base_url}/processes/{process_id}/execution", "rel":
              "http://www.opengis.net/def/rel/ogc/1.0/execute", "title": "Execute"},
         ],
@@ -179,7 +185,7 @@ def summary(process_id: str, base_url: str = "") -> dict[str, Any]:
                              "outputTransmission")
     } | {
         "links": [{"href": f"{base_url}/processes/{process_id}", "rel": "self",
-                   "type": "application/json"}]
+                   "type": "application/json", "title": "process description"}]
     }
 
 

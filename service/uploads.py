@@ -16,7 +16,8 @@ from typing import BinaryIO
 
 from python_multipart.multipart import MultipartParser, parse_options_header
 
-from service.problems import Problem
+from lidar_outliers.jobs.diskspace import is_disk_full
+from service.problems import Problem, insufficient_storage
 
 #: After a 413, read at most this much more of the body before giving up on the connection.
 DRAIN_LIMIT = 64 * 1024**2
@@ -50,12 +51,21 @@ def too_large(limit: int, quota: bool) -> Problem:
                    f"the file is larger than the limit of {limit} bytes (MAX_UPLOAD_BYTES)")
 
 
+def empty_file(detail: str) -> Problem:
+    return Problem(400, "empty-file", detail)
+
+
 async def _drain(stream: AsyncIterator[bytes]) -> None:
     seen = 0
     async for chunk in stream:
         seen += len(chunk)
         if seen > DRAIN_LIMIT:
             return
+
+
+def declared_size(content_length: str | None) -> int:
+    """The request's Content-Length, 0 when absent (or not a number)."""
+    return int(content_length) if content_length and content_length.isdigit() else 0
 
 
 def refuse_declared_size(content_length: str | None, limit: int, quota: bool,
@@ -91,13 +101,19 @@ async def receive_raw(
         path.unlink(missing_ok=True)
         await _drain(stream)
         raise
+    except OSError as exc:
+        path.unlink(missing_ok=True)
+        if not is_disk_full(exc):
+            raise
+        await _drain(stream)
+        raise insufficient_storage(exc) from None
     except BaseException:
         path.unlink(missing_ok=True)
         raise
     if size == 0:
         path.unlink(missing_ok=True)
-        raise Problem(400, "invalid-request", "the request body is empty; send the LAS/LAZ file "
-                      "as the body")
+        raise empty_file(f"{filename}: the file is empty (0 bytes); send the LAS/LAZ file as "
+                         "the body (curl --data-binary @cloud.las)")
     return Received(path=path, filename=filename, size=size, fields={})
 
 
@@ -214,15 +230,23 @@ async def receive_multipart(
         raise
     except Exception as exc:
         reader.cleanup()
+        if is_disk_full(exc):
+            await _drain(stream)
+            raise insufficient_storage(exc) from None
         raise Problem(400, "invalid-request", f"malformed multipart body: {exc}") from None
     except BaseException:
         reader.cleanup()
         raise
-    if reader.path is None or reader.size == 0:
+    if reader.path is None:
         reader.cleanup()
         raise Problem(400, "invalid-request",
                       "no file: send the LAS/LAZ cloud in a multipart part named `file` "
                       "(curl -F file=@cloud.las)")
+    if reader.size == 0:
+        reader.cleanup()
+        name = os.path.basename(reader.filename) or "file"
+        raise empty_file(f"{name}: the file is empty (0 bytes); the part `file` must hold the "
+                         "LAS/LAZ cloud")
     if reader.trajectory is not None and reader.trajectory_size == 0:
         reader.cleanup()
         raise Problem(422, "invalid-parameter", "trajectory: the part `trajectory` is empty",

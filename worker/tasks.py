@@ -24,7 +24,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 from celery.signals import worker_init
 
 from lidar_outliers.errors import LidarOutliersError
-from lidar_outliers.jobs.execute import execute_job
+from lidar_outliers.jobs.execute import disk_full_message, execute_job
 from lidar_outliers.jobs.queue import (
     MERGE_TILES_TASK,
     PIN_TILES_TASK,
@@ -78,10 +78,11 @@ def dispatch_tiles(job_id: str, cells: Sequence[tuple[int, int]]) -> None:
 
 
 @app.task(name=RUN_JOB_TASK, acks_late=True, reject_on_worker_lost=True)
-def run_job(job_id: str) -> str | None:
+def run_job(job_id: str, requeue: int = 0) -> str | None:
+    """``requeue``: the job's re-queue count when the message was sent (0 from the API)."""
     status = execute_job(get_settings(), _store(), job_id,
                          time_limit_errors=(SoftTimeLimitExceeded,), storage=_storage(),
-                         dispatch=dispatch_tiles)
+                         dispatch=dispatch_tiles, requeue=requeue)
     return status.value if status else None
 
 
@@ -96,14 +97,17 @@ def run_tile(job_id: str, cell: list[int], total: int, phase: int | None = None,
                            values_of=phase)
     except SoftTimeLimitExceeded:
         fail_tiled_job(store, storage, job_id,
-                       f"a tile exceeded the time limit of {settings.task_time_limit} s")
+                       f"a tile exceeded the time limit of {settings.task_time_limit} s",
+                       settings)
         raise
     except LidarOutliersError as exc:
-        fail_tiled_job(store, storage, job_id, f"tile {cell[0]}, {cell[1]}: {exc}")
+        fail_tiled_job(store, storage, job_id,
+                       f"tile {cell[0]}, {cell[1]}: {disk_full_message(exc) or exc}", settings)
         raise
     except Exception as exc:
-        fail_tiled_job(store, storage, job_id, f"tile {cell[0]}, {cell[1]}: internal error: "
-                       f"{type(exc).__name__}: {exc}")
+        fail_tiled_job(store, storage, job_id, f"tile {cell[0]}, {cell[1]}: "
+                       + (disk_full_message(exc) or f"internal error: {type(exc).__name__}: {exc}"),
+                       settings)
         raise
     if ran:
         _count_tile(store, job_id, cell, total, phase, span)

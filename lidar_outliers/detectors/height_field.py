@@ -43,7 +43,8 @@ DETECTOR = Detector(
     name="height_field",
     parameters=HeightFieldParameters,
     run=run,
-    summary="Leave-one-out local height fields with edge-aware half patches and robust sigma.",
+    summary=("Leave-one-out local height fields with edge-aware half patches and robust sigma; "
+             "clumps under the lowest ground-like surface (mirror returns)."),
     flag_bit=64,
     # k nearest neighbours besides the point; sigma "auto" is estimated from every point's
     # residual first

@@ -25,8 +25,8 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
 
     gps_time = cloud.require_gps_time("transient")
     result = detect_transient(
-        cloud.xyz, gps_time, k=params.k, radius=params.radius, min_dt=params.min_dt
-    )
+        cloud.xyz, gps_time, cloud.point_source_id, k=params.k, radius=params.radius,
+        min_dt=params.min_dt)
     if cloud.trajectory is None:
         result.info["free_space"] = "no trajectory file given"
         return result
@@ -89,7 +89,8 @@ DETECTOR = Detector(
     name="transient",
     parameters=TransientParameters,
     run=run,
-    summary="Clusters seen at one moment only and attached to nothing (moving objects).",
+    summary=("Clusters seen at one moment only, attached to nothing, where their place was seen "
+             "again (moving objects)."),
     flag_bit=128,
     needs=("gps_time",),
     # a first guess; single-epoch clusters reach as far as they extend. Free-space evidence

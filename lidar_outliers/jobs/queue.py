@@ -9,7 +9,8 @@ Settings that make a job survive a dying worker:
   job ends, and re-queued when the process running it is killed (SIGKILL, out of memory);
 - ``worker_prefetch_multiplier = 1``: a busy worker holds no further jobs another could run;
 - the broker's ``visibility_timeout`` is longer than the hard time limit, so Redis re-delivers a
-  job whose whole worker vanished only once that job cannot still be running;
+  job whose whole worker vanished only once that job cannot still be running; well before that,
+  the workers' heartbeats and sweeps (:mod:`lidar_outliers.jobs.janitor`) queue it again;
 - priorities 0-9 (0 first) let the API queue a user's n-th active job behind other users' first
   jobs (fairness).
 
@@ -62,7 +63,13 @@ def celery_config(settings: Settings) -> dict[str, Any]:
             "unacked_restore_interval": 5,
             "unacked_restore_throttle": 1,
         },
+        # Redis restarted or away for a while: keep reconnecting (never give up), and a task
+        # being sent waits for it a few seconds before the API answers 503
         broker_connection_retry_on_startup=True,
+        broker_connection_retry=True,
+        broker_connection_max_retries=None,
+        task_publish_retry_policy={"max_retries": 6, "interval_start": 0.2,
+                                   "interval_step": 0.5, "interval_max": 1.5},
         worker_cancel_long_running_tasks_on_connection_loss=True,
         # On SIGTERM/Ctrl-C: give a running job a few seconds, then re-queue it (Redis) and stop.
         worker_soft_shutdown_timeout=5.0,

@@ -43,9 +43,16 @@ jobs = sa.Table(
     sa.Column("laz", sa.Integer, nullable=False),
     sa.Column("attempts", sa.Integer, nullable=False, server_default=sa.text("0")),
     sa.Column("worker_pid", sa.Integer),
+    # the running delivery's last sign of life and its host (a vanished worker's job is re-queued)
+    sa.Column("heartbeat", sa.Text),
+    sa.Column("worker_host", sa.Text),
+    # times the job was put back in the queue after its worker vanished; older messages are stale
+    sa.Column("requeues", sa.Integer, nullable=False, server_default=sa.text("0")),
     sa.Column("stored_bytes", Bytes, nullable=False, server_default=sa.text("0")),
     # the user's n-th job: lists keep submission order whatever the hosts' clocks say
     sa.Column("seq", sa.Integer, nullable=False, server_default=sa.text("0")),
+    # the callback URIs of the execute request as JSON (NULL: none)
+    sa.Column("subscriber", sa.Text),
     sa.Index("jobs_by_user_seq", "user_id", "seq", unique=True),
     sa.Index("jobs_by_user_status", "user_id", "status"),
 )
@@ -62,4 +69,25 @@ uploads = sa.Table(
     sa.Column("created", sa.Text, nullable=False),
     # header facts of a cloud or a trajectory's summary, so a job can use it without reading it
     sa.Column("facts", sa.Text),
+)
+
+resumable_uploads = sa.Table(
+    "resumable_uploads",
+    metadata,
+    # the id the upload keeps in ``uploads`` once its last byte has arrived
+    sa.Column("id", sa.Text, primary_key=True),
+    sa.Column("user_id", sa.Integer, sa.ForeignKey("users.id"), nullable=False),
+    sa.Column("name", sa.Text, nullable=False),
+    # cloud or trajectory, as for POST /uploads?kind=
+    sa.Column("kind", sa.Text, nullable=False),
+    # the announced size: reserved against the user's quota from the start
+    sa.Column("length", Bytes, nullable=False),
+    # bytes received and on disk (fsync'd); a PATCH continues here
+    sa.Column("offset", Bytes, nullable=False, server_default=sa.text("0")),
+    sa.Column("created", sa.Text, nullable=False),
+    # unfinished uploads are deleted after this time (moved on by every PATCH)
+    sa.Column("expires", sa.Text, nullable=False),
+    # the host whose disk holds the partial data
+    sa.Column("host", sa.Text, nullable=False),
+    sa.Index("resumable_uploads_by_expiry", "expires"),
 )

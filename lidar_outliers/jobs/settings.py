@@ -58,6 +58,10 @@ class Settings(BaseSettings):
     retention_days: float = Field(
         7.0, gt=0, description="Finished jobs and unused uploads older than this are deleted."
     )
+    resumable_expiry_hours: float = Field(
+        24.0, gt=0, description="An unfinished resumable (tus) upload is deleted this long after "
+        "its last PATCH, and its reserved bytes freed."
+    )
     cleanup_interval_seconds: float = Field(
         3600.0, gt=0, description="How often the API runs the retention cleanup."
     )
@@ -72,6 +76,14 @@ class Settings(BaseSettings):
     max_attempts: int = Field(
         2, ge=1, description="Deliveries of a job whose worker died before it is marked failed."
     )
+    heartbeat_interval_seconds: float = Field(
+        10.0, gt=0, description="How often a worker records that its running jobs are alive, "
+        "and looks for jobs of vanished workers."
+    )
+    stale_job_seconds: float = Field(
+        60.0, gt=0, description="A running job without a heartbeat for this long (or whose "
+        "worker process on this host is gone) is re-queued, or failed after MAX_ATTEMPTS."
+    )
     worker_concurrency: int = Field(1, ge=1, description="Worker processes `serve` starts.")
     tile_job_points: int = Field(
         5_000_000, ge=1, description="A job of more points is cut into tiles that every "
@@ -82,6 +94,34 @@ class Settings(BaseSettings):
     api_host: str = Field("127.0.0.1", description="Address `serve` binds the API to.")
     api_port: int = Field(8000, ge=1, le=65535, description="Port `serve` binds the API to.")
     retry_after_seconds: int = Field(30, ge=1, description="Retry-After sent with 429.")
+    cors_origins: str = Field(
+        "", description="Comma-separated origins (https://portal.example) whose browser "
+        "scripts may call the API; empty: none."
+    )
+    callback_allow: str = Field(
+        "", description="Comma-separated host names that subscriber callbacks may reach even "
+        "though they resolve to private, loopback, link-local or reserved addresses."
+    )
+    sync_max_points: int = Field(
+        2_000_000, ge=0, description="Largest cloud (points) run synchronously with "
+        "`Prefer: wait`; larger ones run asynchronously."
+    )
+    sync_wait_seconds: float = Field(
+        120.0, gt=0, description="How long a synchronous execution waits for its job before "
+        "answering asynchronously."
+    )
+    health_interval_seconds: float = Field(
+        5.0, gt=0, description="How often the API checks Redis, the workers, the database and "
+        "the storage for /health (answers use the last check)."
+    )
+    min_free_bytes: int = Field(
+        256 * 1024**2, ge=0, description="Free space kept on DATA_DIR's disk: an upload is "
+        "refused with 507 unless the disk keeps this much after the file and room for its "
+        "result (as large again); a worker fails a job cleanly when the disk fills."
+    )
+    api_workers: int = Field(
+        2, ge=1, description="API processes (uvicorn workers) `serve` starts."
+    )
 
     @model_validator(mode="after")
     def _resolve(self) -> Settings:
@@ -99,6 +139,12 @@ class Settings(BaseSettings):
                 raise ValueError(
                     f"STORAGE_URL must look like s3://bucket/prefix, got {self.storage_url!r}"
                 )
+        if self.stale_job_seconds <= 2 * self.heartbeat_interval_seconds:
+            # one late heartbeat must not make a live job look abandoned
+            raise ValueError(
+                f"STALE_JOB_SECONDS ({self.stale_job_seconds}) must exceed twice "
+                f"HEARTBEAT_INTERVAL_SECONDS ({self.heartbeat_interval_seconds})"
+            )
         if self.visibility_timeout == 0:
             self.visibility_timeout = self.task_time_limit + 600
         if self.visibility_timeout <= self.task_time_limit:
@@ -108,6 +154,14 @@ class Settings(BaseSettings):
                 f"({self.task_time_limit})"
             )
         return self
+
+    @property
+    def cors_origin_list(self) -> list[str]:
+        return _split(self.cors_origins)
+
+    @property
+    def callback_allow_list(self) -> list[str]:
+        return [h.lower().rstrip(".") for h in _split(self.callback_allow)]
 
     @property
     def soft_time_limit(self) -> int:
@@ -125,10 +179,19 @@ class Settings(BaseSettings):
         return self.data_dir / "uploads" / "incoming"
 
     @property
+    def resumable_dir(self) -> Path:
+        """The bytes of resumable uploads received so far by the API on this host."""
+        return self.data_dir / "uploads" / "resumable"
+
+    @property
     def scratch_dir(self) -> Path:
         """Local working copies of this host: a job's input and result while a worker runs it,
         a result while the API derives another format or a preview from it."""
         return self.data_dir / "scratch"
+
+
+def _split(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
 
 
 @lru_cache

@@ -7,7 +7,8 @@ is one short transaction. Keys are stored only as sha256 hashes. The schema is t
 (:func:`lidar_outliers.jobs.database.upgrade`).
 
 :meth:`Store.transition` is the one place that moves a job between states
-(accepted -> running -> successful / failed / dismissed) and records failures.
+(accepted -> running -> successful / failed / dismissed) and records failures;
+:meth:`Store.reclaim` alone moves a job of a vanished worker (running -> accepted or failed).
 
 Limits hold under concurrency: :meth:`Store.create_job` and :meth:`Store.add_upload` check the
 user's active jobs and stored bytes and insert the record in one transaction that first locks
@@ -33,7 +34,7 @@ import sqlalchemy as sa
 
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.jobs import database
-from lidar_outliers.jobs.schema import jobs, uploads, users
+from lidar_outliers.jobs.schema import jobs, resumable_uploads, uploads, users
 
 
 class StoreError(LidarOutliersError):
@@ -80,8 +81,10 @@ FINAL = (JobStatus.successful, JobStatus.failed, JobStatus.dismissed)
 #: Allowed moves; anything else is refused (e.g. a late worker cannot resurrect a dismissed job).
 TRANSITIONS: dict[JobStatus, set[JobStatus]] = {
     JobStatus.accepted: {JobStatus.running, JobStatus.failed, JobStatus.dismissed},
-    # running -> running: a job re-delivered after its worker died starts again.
+    # running -> running: a job re-delivered after its worker died starts again;
+    # running -> accepted: its worker vanished and the job was put back in the queue.
     JobStatus.running: {
+        JobStatus.accepted,
         JobStatus.running,
         JobStatus.successful,
         JobStatus.failed,
@@ -135,6 +138,27 @@ class Upload:
 
 
 @dataclass
+class Resumable:
+    """An upload still arriving in pieces (tus); its bytes so far lie on ``host``'s disk."""
+
+    id: str
+    user_id: int
+    name: str
+    kind: str
+    length: int
+    offset: int
+    created: str
+    expires: str
+    host: str
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any]) -> Resumable:
+        return cls(id=row["id"], user_id=row["user_id"], name=row["name"], kind=row["kind"],
+                   length=int(row["length"]), offset=int(row["offset"]),
+                   created=row["created"], expires=row["expires"], host=row["host"])
+
+
+@dataclass
 class Job:
     id: str
     user_id: int
@@ -151,8 +175,15 @@ class Job:
     attempts: int = 0
     worker_pid: int | None = None
     stored_bytes: int = 0
+    #: When the worker running the job last said it is alive, and that worker's host.
+    heartbeat: str | None = None
+    worker_host: str | None = None
+    #: Times the job was put back in the queue after its worker vanished.
+    requeues: int = 0
     #: The user's n-th job (lists are in this order).
     seq: int = 0
+    #: Callback URIs (successUri, failedUri, inProgressUri) and the API's base_url, or None.
+    subscriber: dict[str, str] | None = None
     #: Set by :meth:`Store.create_job` only: the user's active jobs before this one (its queue
     #: priority); not stored.
     active_before: int = 0
@@ -176,11 +207,28 @@ class Job:
             worker_pid=row["worker_pid"],
             stored_bytes=int(row["stored_bytes"]),
             seq=row["seq"],
+            subscriber=json.loads(row["subscriber"]) if row["subscriber"] else None,
+            heartbeat=row["heartbeat"],
+            worker_host=row["worker_host"],
+            requeues=row["requeues"],
         )
 
 
 def _user(row: Mapping[str, Any]) -> User:
     return User(id=row["id"], name=row["name"], created=row["created"], revoked=row["revoked"])
+
+
+#: Statements of every request, built once (building one costs more than running it).
+_USER_FOR_KEY = sa.select(users).where(users.c.key_hash == sa.bindparam("key_hash"),
+                                       users.c.revoked.is_(None))
+_JOB = sa.select(jobs).where(jobs.c.id == sa.bindparam("job_id"))
+#: A user by key hash and, joined when it is theirs, one job (built once: polls are frequent).
+_JOB_FOR_KEY = (
+    sa.select(users, *[c.label(f"job_{c.name}") for c in jobs.c])
+    .select_from(users.outerjoin(jobs, sa.and_(jobs.c.user_id == users.c.id,
+                                               jobs.c.id == sa.bindparam("job_id"))))
+    .where(users.c.key_hash == sa.bindparam("key_hash"), users.c.revoked.is_(None))
+)
 
 
 class Store:
@@ -238,7 +286,12 @@ class Store:
             sa.select(sa.func.coalesce(sa.func.sum(uploads.c.bytes), 0))
             .where(uploads.c.user_id == user_id)
         ).scalar_one()
-        return int(in_jobs) + int(in_uploads)
+        # an unfinished resumable upload holds its announced length
+        arriving = db.execute(
+            sa.select(sa.func.coalesce(sa.func.sum(resumable_uploads.c.length), 0))
+            .where(resumable_uploads.c.user_id == user_id)
+        ).scalar_one()
+        return int(in_jobs) + int(in_uploads) + int(arriving)
 
     @staticmethod
     def _count_active(db: sa.Connection, user_id: int) -> int:
@@ -301,11 +354,21 @@ class Store:
 
     def user_for_key(self, key: str) -> User | None:
         with self._read() as db:
-            row = db.execute(
-                sa.select(users).where(users.c.key_hash == hash_key(key),
-                                       users.c.revoked.is_(None))
-            ).mappings().first()
+            row = db.execute(_USER_FOR_KEY, {"key_hash": hash_key(key)}).mappings().first()
         return _user(row) if row else None
+
+    def job_for_key(self, key: str, job_id: str) -> tuple[User | None, Job | None]:
+        """The key's user and that user's job ``job_id``, in one query (a status poll's whole
+        database work): (None, None) for a wrong or revoked key, (user, None) when the job is
+        not the user's or does not exist."""
+        with self._read() as db:
+            row = db.execute(_JOB_FOR_KEY, {"key_hash": hash_key(key), "job_id": job_id}
+                             ).mappings().first()
+        if row is None:
+            return None, None
+        if row["job_id"] is None:
+            return _user(row), None
+        return _user(row), Job.from_row({c.name: row[f"job_{c.name}"] for c in jobs.c})
 
     # ---- uploads -----------------------------------------------------------------------------
 
@@ -346,6 +409,68 @@ class Store:
             ).mappings().all()
         return [Upload.from_row(r) for r in rows]
 
+    # ---- resumable uploads -------------------------------------------------------------------
+
+    def add_resumable(
+        self, user_id: int, name: str, kind: str, length: int, expires: str, host: str, *,
+        max_stored_bytes: int | None = None,
+    ) -> Resumable:
+        """Record a new resumable upload of ``length`` bytes, reserved against the user's quota
+        in the same transaction (:class:`QuotaExceeded` when it does not fit)."""
+        upload = Resumable(id=uuid.uuid4().hex, user_id=user_id, name=name, kind=kind,
+                           length=length, offset=0, created=now(), expires=expires, host=host)
+        with self._transaction() as db:
+            self._lock_user(db, user_id)
+            self._check_quota(db, user_id, length, max_stored_bytes)
+            db.execute(sa.insert(resumable_uploads).values(
+                id=upload.id, user_id=user_id, name=name, kind=kind, length=length, offset=0,
+                created=upload.created, expires=expires, host=host))
+        return upload
+
+    def get_resumable(self, upload_id: str, user_id: int) -> Resumable | None:
+        with self._read() as db:
+            row = db.execute(
+                sa.select(resumable_uploads).where(resumable_uploads.c.id == upload_id,
+                                                   resumable_uploads.c.user_id == user_id)
+            ).mappings().first()
+        return Resumable.from_row(row) if row else None
+
+    def set_resumable_offset(self, upload_id: str, offset: int, expires: str) -> None:
+        with self._transaction() as db:
+            db.execute(sa.update(resumable_uploads).where(resumable_uploads.c.id == upload_id)
+                       .values(offset=offset, expires=expires))
+
+    def complete_resumable(self, upload: Resumable, key: str,
+                           facts: dict[str, Any] | None) -> Upload:
+        """The arrived upload becomes an ordinary one under the same id, in one transaction:
+        its reserved bytes pass from one table to the other, so the quota never counts them
+        twice nor drops them."""
+        done = Upload(id=upload.id, user_id=upload.user_id, name=upload.name, key=key,
+                      bytes=upload.length, created=now(), facts=facts)
+        with self._transaction() as db:
+            removed = db.execute(sa.delete(resumable_uploads)
+                                 .where(resumable_uploads.c.id == upload.id)).rowcount
+            if not removed:
+                raise StoreError(f"no resumable upload {upload.id!r}")
+            db.execute(sa.insert(uploads).values(
+                id=done.id, user_id=done.user_id, name=done.name, key=key, bytes=done.bytes,
+                created=done.created, facts=json.dumps(facts) if facts is not None else None))
+        return done
+
+    def delete_resumable(self, upload_id: str) -> bool:
+        with self._transaction() as db:
+            return bool(db.execute(sa.delete(resumable_uploads)
+                                   .where(resumable_uploads.c.id == upload_id)).rowcount)
+
+    def resumables_expired(self, stamp: str, user_id: int | None = None) -> list[Resumable]:
+        """Unfinished uploads whose expiry is before ``stamp`` (of one user when given)."""
+        query = sa.select(resumable_uploads).where(resumable_uploads.c.expires < stamp)
+        if user_id is not None:
+            query = query.where(resumable_uploads.c.user_id == user_id)
+        with self._read() as db:
+            rows = db.execute(query).mappings().all()
+        return [Resumable.from_row(r) for r in rows]
+
     # ---- jobs --------------------------------------------------------------------------------
 
     def create_job(
@@ -360,6 +485,7 @@ class Store:
         *,
         max_active: int | None = None,
         max_stored_bytes: int | None = None,
+        subscriber: dict[str, str] | None = None,
     ) -> Job:
         """Record a new accepted job that holds ``stored_bytes``.
 
@@ -383,6 +509,7 @@ class Store:
             facts=facts,
             laz=laz,
             stored_bytes=stored_bytes,
+            subscriber=subscriber,
         )
         with self._transaction() as db:
             self._lock_user(db, user_id)
@@ -398,13 +525,14 @@ class Store:
                 id=job.id, user_id=user_id, process_id=process_id, status=job.status.value,
                 progress=0, message=job.message, created=job.created, inputs=json.dumps(inputs),
                 facts=json.dumps(facts), laz=int(laz), stored_bytes=stored_bytes, seq=job.seq,
+                subscriber=json.dumps(subscriber) if subscriber else None,
             ))
         job.active_before = active
         return job
 
     def get_job(self, job_id: str) -> Job | None:
         with self._read() as db:
-            row = db.execute(sa.select(jobs).where(jobs.c.id == job_id)).mappings().first()
+            row = db.execute(_JOB, {"job_id": job_id}).mappings().first()
         return Job.from_row(row) if row else None
 
     def list_jobs(self, user_id: int, limit: int, offset: int) -> tuple[list[Job], int]:
@@ -418,6 +546,24 @@ class Store:
                 sa.select(sa.func.count()).select_from(jobs).where(jobs.c.user_id == user_id)
             ).scalar_one()
         return [Job.from_row(r) for r in rows], int(total)
+
+    def find_jobs(self, user_id: int, process_ids: list[str] | None = None,
+                  statuses: list[str] | None = None, created_from: str | None = None,
+                  created_to: str | None = None) -> list[Job]:
+        """The user's jobs matching every given filter, newest first (``created_*``: ISO 8601
+        UTC with a Z as stored, bounds included)."""
+        query = sa.select(jobs).where(jobs.c.user_id == user_id)
+        if process_ids:
+            query = query.where(jobs.c.process_id.in_(process_ids))
+        if statuses:
+            query = query.where(jobs.c.status.in_(statuses))
+        if created_from:
+            query = query.where(jobs.c.created >= created_from)
+        if created_to:
+            query = query.where(jobs.c.created <= created_to)
+        with self._read() as db:
+            rows = db.execute(query.order_by(jobs.c.seq.desc())).mappings().all()
+        return [Job.from_row(r) for r in rows]
 
     def count_active(self, user_id: int) -> int:
         with self._read() as db:
@@ -446,19 +592,24 @@ class Store:
         message: str | None = None,
         *,
         worker_pid: int | None = None,
+        worker_host: str | None = None,
         stored_bytes: int | None = None,
+        requeues: int | None = None,
     ) -> Job | None:
         """Move a job to ``status`` if the move is allowed; return the job as stored afterwards,
-        or None when the move is refused (unknown job, or already final such as dismissed)."""
+        or None when the move is refused (unknown job, already final such as dismissed, or,
+        with ``requeues``, re-queued since the delivery asking was sent)."""
         with self._transaction() as db:
             row = db.execute(
-                sa.select(jobs.c.status, jobs.c.attempts).where(jobs.c.id == job_id)
-                .with_for_update()
+                sa.select(jobs.c.status, jobs.c.attempts, jobs.c.requeues)
+                .where(jobs.c.id == job_id).with_for_update()
             ).mappings().first()
             if row is None:
                 return None
             current = JobStatus(row["status"])
             if status not in TRANSITIONS[current]:
+                return None
+            if requeues is not None and row["requeues"] != requeues:
                 return None
             sets: dict[str, Any] = {"status": status.value}
             if message is not None:
@@ -468,6 +619,8 @@ class Store:
                 sets["started"] = stamp
                 sets["attempts"] = row["attempts"] + 1
                 sets["worker_pid"] = worker_pid
+                sets["worker_host"] = worker_host
+                sets["heartbeat"] = stamp
                 sets["progress"] = 0
             elif status in FINAL:
                 sets["finished"] = stamp
@@ -480,18 +633,77 @@ class Store:
             updated = db.execute(sa.select(jobs).where(jobs.c.id == job_id)).mappings().one()
         return Job.from_row(updated)
 
-    def set_progress(self, job_id: str, percent: int, message: str) -> JobStatus | None:
-        """Record progress of a running job; return its status (the worker stops on dismissed)."""
+    def set_progress(self, job_id: str, percent: int, message: str,
+                     attempt: int | None = None) -> JobStatus | None:
+        """Record progress of a running job; return its status (the worker stops on dismissed).
+
+        With ``attempt`` (the delivery's number, :attr:`Job.attempts` when it started), only
+        that delivery may report: for an older one, whose job was re-queued or started again
+        elsewhere, nothing is written and the answer is None, as for an unknown job."""
+        where = [jobs.c.id == job_id, jobs.c.status == JobStatus.running.value]
+        if attempt is not None:
+            where.append(jobs.c.attempts == attempt)
         with self._transaction() as db:
             changed = db.execute(
-                sa.update(jobs)
-                .where(jobs.c.id == job_id, jobs.c.status == JobStatus.running.value)
+                sa.update(jobs).where(*where)
                 .values(progress=max(0, min(99, percent)), message=message)
             ).rowcount
             if changed:
                 return JobStatus.running
-            status = db.execute(sa.select(jobs.c.status).where(jobs.c.id == job_id)).scalar()
-        return JobStatus(status) if status is not None else None
+            row = db.execute(sa.select(jobs.c.status, jobs.c.attempts)
+                             .where(jobs.c.id == job_id)).first()
+        if row is None or (attempt is not None and row.attempts != attempt):
+            return None
+        return JobStatus(row.status)
+
+    def beat(self, job_ids: list[str], host: str) -> int:
+        """Heartbeat of the jobs a worker on ``host`` runs; returns how many were running."""
+        if not job_ids:
+            return 0
+        with self._transaction() as db:
+            return db.execute(
+                sa.update(jobs).where(jobs.c.id.in_(job_ids),
+                                      jobs.c.status == JobStatus.running.value,
+                                      jobs.c.worker_host == host)
+                .values(heartbeat=now())
+            ).rowcount
+
+    def running_jobs(self) -> list[Job]:
+        with self._read() as db:
+            rows = db.execute(
+                sa.select(jobs).where(jobs.c.status == JobStatus.running.value)
+            ).mappings().all()
+        return [Job.from_row(r) for r in rows]
+
+    def reclaim(self, job: Job, message: str, *, give_up: bool = False,
+                stored_bytes: int | None = None) -> Job | None:
+        """Take back a running job whose worker vanished, as ``job`` was read: put it back in
+        the queue (accepted, one more re-queue) or, with ``give_up``, fail it with ``message``.
+
+        Nothing happens (None) when the job changed since it was read: a heartbeat, a new
+        delivery or its end since means its worker, or another, has it."""
+        target = JobStatus.failed if give_up else JobStatus.accepted
+        assert target in TRANSITIONS[JobStatus.running]
+        sets: dict[str, Any] = {"status": target.value, "message": message, "worker_pid": None}
+        if give_up:
+            sets["finished"] = now()
+        else:
+            sets.update(requeues=job.requeues + 1, progress=0)
+        if stored_bytes is not None:
+            sets["stored_bytes"] = stored_bytes
+        heartbeat = (jobs.c.heartbeat.is_(None) if job.heartbeat is None
+                     else jobs.c.heartbeat == job.heartbeat)
+        with self._transaction() as db:
+            changed = db.execute(
+                sa.update(jobs).where(
+                    jobs.c.id == job.id, jobs.c.status == JobStatus.running.value,
+                    jobs.c.attempts == job.attempts, jobs.c.requeues == job.requeues, heartbeat,
+                ).values(**sets)
+            ).rowcount
+            if not changed:
+                return None
+            updated = db.execute(sa.select(jobs).where(jobs.c.id == job.id)).mappings().one()
+        return Job.from_row(updated)
 
     def annotate(self, job_id: str, message: str) -> None:
         """Replace a job's message without changing its state (e.g. how a cancel ended)."""

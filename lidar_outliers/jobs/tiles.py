@@ -23,8 +23,15 @@ from typing import Any
 from lidar_outliers import lasio
 from lidar_outliers.errors import CancelledError, LidarOutliersError
 from lidar_outliers.jobs import layout
-from lidar_outliers.jobs.execute import Progress, fail_job, quietly
-from lidar_outliers.jobs.settings import Settings
+from lidar_outliers.jobs.callbacks import FAILED, SUCCESS
+from lidar_outliers.jobs.execute import (
+    Progress,
+    disk_full_message,
+    fail_job,
+    notify,
+    quietly,
+)
+from lidar_outliers.jobs.settings import Settings, get_settings
 from lidar_outliers.jobs.storage import ObjectMissing, Storage
 from lidar_outliers.jobs.store import JobStatus, Store
 from lidar_outliers.params import PipelineParams
@@ -213,11 +220,12 @@ def merge_job(settings: Settings, store: Store, storage: Storage, job_id: str) -
         quietly(storage.delete_prefix, layout.job_prefix(job_id))
         return JobStatus.dismissed
     except LidarOutliersError as exc:
-        return fail_tiled_job(store, storage, job_id, str(exc))
+        return fail_tiled_job(store, storage, job_id, disk_full_message(exc) or str(exc),
+                              settings)
     except Exception as exc:
         log.exception("merging the tiles of job %s failed", job_id)
-        return fail_tiled_job(store, storage, job_id,
-                              f"internal error: {type(exc).__name__}: {exc}")
+        return fail_tiled_job(store, storage, job_id, disk_full_message(exc)
+                              or f"internal error: {type(exc).__name__}: {exc}", settings)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     quietly(storage.delete_prefix, layout.tiles_prefix(job_id))
@@ -227,6 +235,7 @@ def merge_job(settings: Settings, store: Store, storage: Storage, job_id: str) -
     if done is None:
         quietly(storage.delete_prefix, layout.job_prefix(job_id))
         return JobStatus.dismissed
+    notify(settings, done, SUCCESS)
     return JobStatus.successful
 
 
@@ -271,10 +280,15 @@ def _merge(storage: Storage, job_id: str, job: Any, scratch: Path, progress: Pro
     return stored
 
 
-def fail_tiled_job(store: Store, storage: Storage, job_id: str, message: str) -> JobStatus | None:
+def fail_tiled_job(store: Store, storage: Storage, job_id: str, message: str,
+                   settings: Settings | None = None) -> JobStatus | None:
     """End a tiled job as failed with ``message`` (once: later calls change nothing); its
-    tiles and any part of a result are removed."""
+    tiles and any part of a result are removed, and its subscriber hears of the failure."""
     quietly(storage.delete_prefix, layout.tiles_prefix(job_id))
     if store.status(job_id) is not JobStatus.running:
         return None
-    return fail_job(store, storage, job_id, message)
+    status = fail_job(store, storage, job_id, message)
+    job = store.get_job(job_id)
+    if status is JobStatus.failed and job is not None:
+        notify(settings or get_settings(), job, FAILED)
+    return status

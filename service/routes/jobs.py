@@ -3,17 +3,24 @@
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
 
 from lidar_outliers import view
-from service.deps import ServiceDep, UserDep
+from lidar_outliers.jobs.documents import MEDIA, results_document, status_document
+from service import html
+from service.deps import BearerDep, ServiceDep, UserDep
 from service.downloads import object_response
-from service.jobs import status_document
+from service.joblist import JobFilter, split_values
 
 router = APIRouter(tags=["jobs"])
 
-MEDIA = {".las": "application/vnd.las", ".laz": "application/vnd.laszip"}
+#: Largest list offset (a database integer holds more; nobody has this many jobs).
+MAX_OFFSET = 10**9
+
 #: Downloads answer HEAD too (size and validators without the body) and honour Range.
 DOWNLOAD = {"methods": ["GET", "HEAD"], "response_class": Response, "responses": {
     206: {"description": "The byte range(s) asked with `Range: bytes=...`."},
@@ -21,51 +28,77 @@ DOWNLOAD = {"methods": ["GET", "HEAD"], "response_class": Response, "responses":
 }}
 
 
+def _page_href(request: Request, limit: int, offset: int) -> str:
+    """/jobs with the request's filters and another page."""
+    query = [(k, v) for k, v in request.query_params.multi_items()
+             if k not in ("limit", "offset", "f")]
+    query += [("limit", str(limit)), ("offset", str(offset))]
+    return f"/jobs?{urlencode(query)}"
+
+
 @router.get("/jobs")
 def list_jobs(
+    request: Request,
     service: ServiceDep,
     user: UserDep,
     limit: Annotated[int, Query(ge=1, le=1000)] = 50,
-    offset: Annotated[int, Query(ge=0)] = 0,
-) -> dict[str, Any]:
-    """The caller's jobs, newest first."""
-    jobs, total = service.list_jobs(user, limit, offset)
-    links = [{"href": f"/jobs?limit={limit}&offset={offset}", "rel": "self",
-              "type": "application/json"}]
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+    process_id: Annotated[list[str], Query(alias="processID", description=
+                          "Only jobs of these processes (repeat it or separate with commas).")
+                          ] = [],  # noqa: B006 - FastAPI copies query defaults
+    status: Annotated[list[str], Query(description="Only jobs in these states (repeat it or "
+                                       "separate with commas).")] = [],  # noqa: B006
+    datetime: Annotated[str | None, Query(description="Jobs created at this RFC 3339 instant "
+                                          "or in this interval (start/end, '..' open).")
+                        ] = None,
+    min_duration: Annotated[int | None, Query(alias="minDuration", ge=0, description=
+                            "Jobs that ran at least this many seconds.")] = None,
+    max_duration: Annotated[int | None, Query(alias="maxDuration", ge=0, description=
+                            "Jobs that ran at most this many seconds.")] = None,
+    type: Annotated[list[str], Query(description="Only jobs of these types (all jobs here "
+                                     "are of type `process`).")] = [],  # noqa: B006
+) -> Any:
+    """The caller's jobs, newest first, filtered as OGC API - Processes defines."""
+    html.wants_html(request)  # 400 for an unknown f before any work
+    selection = JobFilter(split_values(process_id), split_values(status), datetime,
+                          min_duration, max_duration, split_values(type))
+    jobs, total = selection.select(service.store, user.id, limit, offset)
+    self_href = _page_href(request, limit, offset)
+    links = [{"href": self_href, "rel": "self", "type": "application/json"},
+             {"href": self_href + "&f=html", "rel": "alternate", "type": "text/html"}]
     if offset + len(jobs) < total:
-        links.append({"href": f"/jobs?limit={limit}&offset={offset + limit}", "rel": "next",
+        links.append({"href": _page_href(request, limit, offset + limit), "rel": "next",
                       "type": "application/json"})
     if offset > 0:
-        links.append({"href": f"/jobs?limit={limit}&offset={max(0, offset - limit)}",
+        links.append({"href": _page_href(request, limit, max(0, offset - limit)),
                       "rel": "prev", "type": "application/json"})
-    return {"jobs": [status_document(j) for j in jobs], "numberMatched": total,
-            "numberReturned": len(jobs), "links": links}
+    doc = {"jobs": [status_document(j) for j in jobs], "numberMatched": total,
+           "numberReturned": len(jobs), "links": links}
+    return html.jobs(doc, self_href) if html.wants_html(request) else doc
 
 
 @router.get("/jobs/{job_id}")
-def get_job(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, Any]:
-    return status_document(service.get(user, job_id))
+async def get_job(job_id: str, request: Request, service: ServiceDep,
+                  _key: BearerDep) -> Response:
+    """The job's status document (what clients poll: one database query, one thread hop), or
+    its HTML page for a browser."""
+    wants_html = html.wants_html(request)
+    job = await run_in_threadpool(service.poll, request.headers.get("authorization"), job_id)
+    doc = status_document(job)
+    return html.job(doc) if wants_html else JSONResponse(doc)
 
 
 @router.delete("/jobs/{job_id}")
 def dismiss_job(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, Any]:
-    """Cancel a queued or running job, or delete a finished job's files."""
+    """Cancel a queued or running job, or delete a finished job's files; answers the status
+    document with status ``dismissed``."""
     return status_document(service.dismiss(user, job_id))
 
 
 @router.get("/jobs/{job_id}/results")
 def get_results(job_id: str, service: ServiceDep, user: UserDep) -> dict[str, Any]:
     job, _, _ = service.result(user, job_id, "cloud")
-    base = f"/jobs/{job_id}/results"
-    cloud_type = MEDIA[".laz" if job.laz else ".las"]
-    return {
-        "cloud": {"href": f"{base}/cloud", "type": cloud_type,
-                  "title": "flagged cloud (?keep=inliers|outliers, ?format=las|laz)"},
-        "statistics": {"href": f"{base}/statistics", "type": "application/json"},
-        "preview": {"href": f"{base}/preview", "type": "image/png"},
-        "points": {"href": f"{base}/points", "type": view.MEDIA_TYPE,
-                   "title": "decimated points for a viewer (?max_points=N)"},
-    }
+    return results_document(job)
 
 
 @router.api_route("/jobs/{job_id}/results/cloud", **DOWNLOAD)

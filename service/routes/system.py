@@ -4,76 +4,85 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from lidar_outliers.jobs.storage import StorageError
-from service import queue
-from service.deps import ServiceDep, SettingsDep
+from service import html
+from service.deps import ServiceDep
+from service.oas30 import openapi_30
 from service.problems import PROBLEMS, Problem
 
 router = APIRouter(tags=["system"])
 
 
+OGC_REL = "http://www.opengis.net/def/rel/ogc/1.0/"
+CONFORMANCE = "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/"
+#: Every class of Part 1, each implemented (tests/e2e/test_ogc.py checks each).
+CONFORMANCE_CLASSES = ["core", "ogc-process-description", "json", "html", "oas30", "job-list",
+                       "callback", "dismiss"]
+OPENAPI_30 = "application/vnd.oai.openapi+json;version=3.0"
+
+
 @router.get("/")
-def landing() -> dict[str, Any]:
-    return {
+def landing(request: Request) -> Any:
+    """The landing page: links to the API definition, the conformance declaration, the
+    processes and the jobs."""
+    doc = {
         "title": "lidar-outliers",
         "description": "Outlier detection for mobile LiDAR point clouds (OGC API - Processes).",
         "links": [
-            {"href": "/processes", "rel": "http://www.opengis.net/def/rel/ogc/1.0/processes"},
-            {"href": "/jobs", "rel": "http://www.opengis.net/def/rel/ogc/1.0/job-list"},
-            {"href": "/docs", "rel": "service-doc", "type": "text/html"},
-            {"href": "/openapi.json", "rel": "service-desc",
-             "type": "application/vnd.oai.openapi+json;version=3.0"},
-            {"href": "/health", "rel": "status"},
+            {"href": "/", "rel": "self", "type": "application/json", "title": "this document"},
+            {"href": "/?f=html", "rel": "alternate", "type": "text/html",
+             "title": "this document as HTML"},
+            {"href": "/api", "rel": "service-desc", "type": OPENAPI_30,
+             "title": "the API definition (OpenAPI 3.0)"},
+            {"href": "/docs", "rel": "service-doc", "type": "text/html",
+             "title": "the API documentation"},
+            {"href": "/conformance", "rel": OGC_REL + "conformance", "type": "application/json",
+             "title": "conformance classes implemented"},
+            {"href": "/processes", "rel": OGC_REL + "processes", "type": "application/json",
+             "title": "the processes"},
+            {"href": "/jobs", "rel": OGC_REL + "job-list", "type": "application/json",
+             "title": "your jobs"},
+            {"href": "/health", "rel": "status", "type": "application/json",
+             "title": "health of the service"},
             {"href": "/app", "rel": "alternate", "type": "text/html",
              "title": "job page: upload, follow and view jobs in a browser"},
         ],
     }
+    return html.landing(doc) if html.wants_html(request) else doc
 
 
 @router.get("/conformance")
-def conformance() -> dict[str, Any]:
-    return {"conformsTo": [
-        "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/core",
-        "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/json",
-        "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/job-list",
-        "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/dismiss",
-    ]}
+def conformance(request: Request) -> Any:
+    doc = {"conformsTo": [CONFORMANCE + name for name in CONFORMANCE_CLASSES]}
+    return html.conformance(doc) if html.wants_html(request) else doc
+
+
+@router.get("/api", response_class=JSONResponse,
+            responses={200: {"content": {OPENAPI_30: {}}}})
+def api_definition(request: Request) -> JSONResponse:
+    """This API's definition as OpenAPI 3.0 (``/openapi.json`` has the same in OpenAPI 3.1)."""
+    app = request.app
+    if getattr(app.state, "openapi_30", None) is None:
+        app.state.openapi_30 = openapi_30(app.openapi())
+    return JSONResponse(app.state.openapi_30, media_type=OPENAPI_30)
 
 
 @router.get("/health")
-def health(settings: SettingsDep, service: ServiceDep) -> JSONResponse:
+def health(request: Request, service: ServiceDep) -> JSONResponse:
     """200 when the API, the database, the file storage, Redis and at least one worker answer;
-    503 naming what does not."""
-    import redis
-
-    report: dict[str, Any] = {"api": "ok"}
-    try:
-        service.store.count_active(0)
-        report["database"] = "ok"
-    except Exception as exc:  # any failure of the database is the answer
-        raise Problem(503, "service-unavailable", f"the database {service.store.describe()} "
-                      f"is not reachable: {exc}", **report, database="unreachable") from None
-    try:
-        service.storage.check()
-        report["storage"] = "ok"
-    except StorageError as exc:
-        raise Problem(503, "service-unavailable", str(exc), **report,
-                      storage="unreachable") from None
-    try:
-        redis.Redis.from_url(settings.redis_url, socket_timeout=2.0,
-                             socket_connect_timeout=2.0).ping()
-        report["redis"] = "ok"
-    except Exception as exc:  # any connection failure is the answer
-        raise Problem(503, "service-unavailable", f"Redis at {settings.redis_url} is not "
-                      f"reachable: {exc}", **report, redis="unreachable") from None
-    report["workers"] = queue.ping_workers(settings)
-    if not report["workers"]:
-        raise Problem(503, "service-unavailable", "no Celery worker answered; start one with "
-                      "`celery -A worker.celery_app worker` (or `make run`)", **report)
-    return JSONResponse({"status": "ok", **report})
+    503 naming what does not. Checked every few seconds, not on each request. Without a key it
+    gives component states only; with a key, worker names and what failed where."""
+    detailed = "authorization" in request.headers
+    if detailed:
+        service.authenticate(request.headers["authorization"])  # 401 for a wrong key
+    report = request.app.state.health.report()
+    body = report.body(detailed)
+    if not report.ok:
+        raise Problem(503, "service-unavailable",
+                      report.detail if detailed else report.public_detail, **body)
+    return JSONResponse({"status": "ok", **body})
 
 
 @router.get("/problems/{slug}")

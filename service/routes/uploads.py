@@ -10,7 +10,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
 from service.deps import ServiceDep, UserDep
-from service.uploads import receive_raw, refuse_declared_size
+from service.uploads import declared_size, receive_raw, refuse_declared_size
 
 router = APIRouter(tags=["uploads"])
 
@@ -37,6 +37,9 @@ async def upload(
     trajectory file with ``?kind=trajectory``."""
     limit, quota = await run_in_threadpool(service.upload_limit, user)
     refuse_declared_size(request.headers.get("content-length"), limit, quota, 0)
+    # 507 before a byte is read when the disk cannot take the file and its result
+    await run_in_threadpool(service.check_room,
+                            declared_size(request.headers.get("content-length")))
     received = await receive_raw(request.stream(), service.incoming_dir, limit, quota,
                                  os.path.basename(name) or "cloud")
     assert received.path is not None

@@ -224,6 +224,36 @@ def test_floor_matches_explicit_least_squares():
     assert np.isnan(floor_scores(xyz, candidate, reference, reach=0.0)[candidate]).sum() > 0
 
 
+def test_floor_slope_guard_matches_explicit_gradient():
+    """Where the lower refit plane's gradient (from an explicit least-squares fit) exceeds
+    ``max_slope`` the candidate is compared with the lowest reference point around instead."""
+    xyz = rough_terrain(15, 500)
+    xyz[:, 2] += 0.8 * xyz[:, 0]  # a slope near the limit: some planes pass, some not
+    reference = np.arange(0, 500, 2)
+    candidate = np.zeros(500, bool)
+    candidate[1::5] = True
+    limit = 0.8
+    free = floor_scores(xyz, candidate, reference, k_floor=12, quantile=0.1, below=0.5)
+    guarded = floor_scores(xyz, candidate, reference, k_floor=12, quantile=0.1, below=0.5,
+                           max_slope=limit)
+    steep = []
+    for i in np.flatnonzero(candidate):
+        d2 = np.sum((xyz[reference, :2] - xyz[i, :2]) ** 2, axis=1)
+        nb = xyz[reference[np.argsort(d2, kind="stable")[:12]]]
+        a_mat = np.c_[nb[:, :2] - nb[:, :2].mean(axis=0), np.ones(12)]
+        coef = np.linalg.lstsq(a_mat, nb[:, 2], rcond=None)[0]
+        res = nb[:, 2] - a_mat @ coef
+        lower = res <= np.median(res)
+        coef = np.linalg.lstsq(a_mat[lower], nb[lower, 2], rcond=None)[0]
+        gradient = np.hypot(coef[0], coef[1])
+        if abs(gradient - limit) < 1e-9:
+            continue
+        steep.append(gradient > limit)
+        want = (nb[:, 2].min() - xyz[i, 2]) / 0.5 if steep[-1] else free[i]
+        assert guarded[i] == pytest.approx(want, abs=1e-7)
+    assert 0 < sum(steep) < len(steep)  # the scene tests both sides
+
+
 def test_pit_scores_match_brute_force():
     rng = np.random.default_rng(14)
     xyz = rough_terrain(14, 800)

@@ -5,8 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from algorithms.detached import lowest_per_cell
 from algorithms.errors import ParameterError
-from algorithms.height_field import ONE_SIDED_NZ, detect_height_field, neighbours
+from algorithms.height_field import (
+    FLOOR_NEIGHBOURS,
+    LOW_MAX_SLOPE,
+    ONE_SIDED_NZ,
+    detect_height_field,
+    floor_cells,
+    neighbours,
+)
 from algorithms.height_field_fits import (
     MIN_HALF_POINTS,
     all_terms,
@@ -159,6 +167,74 @@ def test_floating_clump_above_a_road_is_found():
     res = detect_height_field(np.vstack([road, clump]))
     assert res.flagged[len(road):].mean() >= 0.8  # 86 % here: clumped droplets hide a few
     assert res.flagged[: len(road)].sum() == 0
+
+
+def mirror_scene(rng: np.random.Generator) -> tuple[np.ndarray, int, int]:
+    """A 6 m road with a puddle (no returns from the water, 0.8 m wide), mirror returns 0.3-0.7 m
+    under it (the image of a car body), and a wall seen only above 0.9 m (its foot
+    hidden): xyz, index of the first mirror return and of the first wall point."""
+    road = rough_road(rng, size=6.0, spacing=0.04)
+    puddle = np.hypot(road[:, 0] - 3.0, road[:, 1] - 3.0) < 0.4
+    road = road[~puddle]
+    n_img = 300  # the image of a car's roof and side: surfaces of their own
+    img = np.column_stack([rng.uniform(2.75, 3.25, n_img), rng.uniform(2.75, 3.25, n_img),
+                           np.full(n_img, -0.7)])
+    img[::2, 0] = 2.75
+    img[::2, 2] = rng.uniform(-0.7, -0.3, n_img // 2)
+    img += rng.normal(0, 0.002, img.shape)
+    wx, wz = (a.ravel() for a in np.meshgrid(np.arange(0.5, 1.5, 0.04),
+                                             np.arange(0.9, 1.6, 0.04)))
+    wall = np.column_stack([wx, np.full(wx.size, 6.5), wz])
+    wall += rng.normal(0, 0.002, wall.shape)
+    return np.vstack([road, img, wall]), len(road), len(road) + n_img
+
+
+def test_mirror_returns_under_the_road_are_low():
+    rng = np.random.default_rng(11)
+    xyz, first_img, first_wall = mirror_scene(rng)
+    res = detect_height_field(xyz)
+    assert res.flagged[first_img:first_wall].mean() >= 0.9
+    assert not res.flagged[:first_img].any() and not res.flagged[first_wall:].any()
+    assert res.info["low_test"]["points_flagged"] >= 0.9 * (first_wall - first_img)
+    off = detect_height_field(xyz, low=False)
+    assert off.flagged[first_img:first_wall].mean() < 0.1 and "low_test" not in off.info
+
+
+def slow_floor_cells(local: np.ndarray, cell: float) -> np.ndarray:
+    """Per cell: its lowest return, kept when at least FLOOR_NEIGHBOURS of the 8 neighbour
+    cells' lowest returns continue its plane."""
+    cells: dict[tuple[int, int], int] = {}
+    for i, key in enumerate(map(tuple, np.floor((local[:, :2] - local[:, :2].min(axis=0))
+                                                / cell).astype(int))):
+        if key not in cells or local[i, 2] < local[cells[key], 2]:
+            cells[key] = i
+    keep = []
+    for (a, b), i in cells.items():
+        support = 0
+        for da in (-1, 0, 1):
+            for db in (-1, 0, 1):
+                j = cells.get((a + da, b + db))
+                if (da or db) and j is not None and (
+                        abs(local[j, 2] - local[i, 2]) <= LOW_MAX_SLOPE * cell * np.hypot(da, db)):
+                    support += 1
+        if support >= FLOOR_NEIGHBOURS:
+            keep.append(i)
+    return np.sort(np.array(keep, dtype=np.int64))
+
+
+def test_floor_cells_match_slow_loop_and_leave_out_a_walls_foot():
+    rng = np.random.default_rng(12)
+    road = rough_road(rng, size=3.0, spacing=0.05)
+    road[road[:, 0] > 2.0, 2] += 0.3  # a step: cells across it do not continue each other
+    wx, wz = (a.ravel() for a in np.meshgrid(np.arange(0, 3, 0.05), np.arange(1.5, 3, 0.05)))
+    wall = np.column_stack([wx, np.full(wx.size, 4.0), wz])  # foot hidden: lowest z 1.5 m
+    local = np.vstack([road, wall])
+    cell = 0.2
+    lowest = lowest_per_cell(local, np.arange(len(local)), cell)
+    fast = floor_cells(local, np.arange(len(local)), cell)
+    np.testing.assert_array_equal(fast, slow_floor_cells(local, cell))
+    assert not np.isin(fast, np.arange(len(road), len(local))).any()  # no wall cell
+    assert np.isin(lowest[lowest < len(road)], fast).mean() > 0.7  # the road's cells stay
 
 
 def test_rough_surface_with_curb_and_lid_raises_nothing():

@@ -140,10 +140,15 @@ class Stack:
 
     def __init__(self, data_dir: Path, redis_url: str, **settings: Any) -> None:
         self.data_dir = data_dir
+        # PYTHONPATH: the commands (`lidar-outliers ...`) import this checkout's code too,
+        # whichever checkout the virtual environment was installed from
         self.env = dict(os.environ, DATA_DIR=str(data_dir), REDIS_URL=redis_url,
-                        PYTHONUNBUFFERED="1",
+                        PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT),
                         **{k.upper(): str(v) for k, v in settings.items()})
         self.env.pop("PYTEST_CURRENT_TEST", None)
+        # this checkout's code in every process, wherever the console script's install points
+        self.env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT),
+                                                                os.environ.get("PYTHONPATH")]))
         self.workers: list[subprocess.Popen] = []
         self.api: subprocess.Popen | None = None
         self.port = 0
@@ -207,7 +212,7 @@ class Stack:
     def run_cli(self, *args: str) -> str:
         """Run `lidar-outliers ARGS` with this stack's settings; return its output."""
         out = subprocess.run(
-            [str(Path(sys.executable).parent / "lidar-outliers"), *args],
+            [sys.executable, "-m", "lidar_outliers", *args],  # this checkout's code
             env=self.env, cwd=ROOT, capture_output=True, text=True, timeout=60, check=True,
         )
         return out.stdout

@@ -47,6 +47,7 @@ def submit_cli(stack: Stack, key: str | None, *args: str, cwd: Path) -> subproce
     """`lidar-outliers submit ARGS` as a user runs it, server and key from the environment."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("LIDAR_OUTLIERS_")}
     env["LIDAR_OUTLIERS_SERVER"] = stack.url
+    env["PYTHONPATH"] = str(ROOT)  # this checkout's client, whichever one the venv came from
     if key is not None:
         env["LIDAR_OUTLIERS_KEY"] = key
     return subprocess.run([CLI, "submit", *args], env=env, cwd=cwd, capture_output=True,

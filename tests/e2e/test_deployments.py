@@ -19,7 +19,7 @@ import pytest
 import sqlalchemy as sa
 
 from lidar_outliers.jobs import database
-from tests.e2e.stack import RedisServer, Stack, running_stack, wait_job
+from tests.e2e.stack import RedisServer, Stack, running_stack, wait_for, wait_job
 from tests.lasfiles import write_cloud
 
 DEPLOYMENTS = ["sqlite+local", "postgresql+s3"]
@@ -177,6 +177,49 @@ def test_upload_then_job_by_href(stack: Stack, las_file: Path) -> None:
         done = wait_job(client, answer.json()["jobID"], ("successful", "failed"))
         assert done["status"] == "successful", done["message"]
         assert done["input_file"]["name"] == "scan.las"
+
+
+def test_resumable_upload_cut_at_half_then_job_by_href(stack: Stack, las_file: Path) -> None:
+    """tus: half the file, a PATCH cut by a closed connection, the rest from the server's
+    offset; the finished upload (in the deployment's storage) runs as a job."""
+    import base64
+    import socket
+
+    key = stack.add_user("tess")
+    data = las_file.read_bytes()
+    half = len(data) // 2
+    tus = {"Tus-Resumable": "1.0.0"}
+    octets = tus | {"Content-Type": "application/offset+octet-stream"}
+    with stack.client(key) as client:
+        created = client.post("/uploads/tus", headers=tus | {
+            "Upload-Length": str(len(data)),
+            "Upload-Metadata": "filename " + base64.b64encode(b"scan.las").decode()})
+        assert created.status_code == 201, created.text
+        location = created.headers["location"]
+        with socket.create_connection(("127.0.0.1", stack.port), timeout=10) as sock:
+            sock.sendall(f"PATCH {location} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+                         f"{key}\r\nTus-Resumable: 1.0.0\r\nContent-Type: application/"
+                         f"offset+octet-stream\r\nUpload-Offset: 0\r\nContent-Length: "
+                         f"{len(data)}\r\n\r\n".encode() + data[:half])
+            # closed once the API has written what it received (bytes still in its buffers
+            # when the connection drops are lost, as on any link)
+            part = stack.data_dir / "uploads" / "resumable" / f"{location.rsplit('/')[-1]}.part"
+            wait_for(lambda: part.stat().st_size == half, 30, "the first half on disk")
+
+        def offset() -> int:
+            return int(client.head(location, headers=tus).headers["upload-offset"])
+
+        wait_for(lambda: offset() == half, 30, "the offset after the cut")
+        done = client.patch(location, content=data[half:],
+                            headers=octets | {"Upload-Offset": str(half)})
+        assert done.status_code == 204, done.text
+        answer = client.post("/processes/temporal/execution",
+                             json={"inputs": {"cloud": {"href": done.headers["upload-href"]}}})
+        assert answer.status_code == 201, answer.text
+        job = wait_job(client, answer.json()["jobID"], ("successful", "failed"))
+        assert job["status"] == "successful", job["message"]
+        assert job["input_file"]["name"] == "scan.las"
+        assert job["input_file"]["bytes"] == len(data)
 
 
 @pytest.fixture(scope="module", params=DEPLOYMENTS)

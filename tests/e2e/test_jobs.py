@@ -171,7 +171,9 @@ def test_failed_job_reports_message(stack: Stack, key: str, tmp_path: Path) -> N
 
 
 def test_health_sees_the_worker(stack: Stack) -> None:
-    with stack.client() as client:
+    with stack.client() as client:  # without a key: how many workers, not their host names
         health = client.get("/health")
         assert health.status_code == 200, health.text
-        assert health.json()["redis"] == "ok" and len(health.json()["workers"]) == 1
+        assert health.json()["redis"] == "ok" and health.json()["workers"] == 1
+    with stack.client(stack.add_user("health-reader")) as client:
+        assert len(client.get("/health").json()["workers"]) == 1

@@ -18,9 +18,12 @@ from tests.lasfiles import write_cloud
 CLI = str(Path(sys.executable).parent / "lidar-outliers")
 
 
-def start_serve(data_dir: Path, port: int, log: Path) -> subprocess.Popen:
+def start_serve(data_dir: Path, port: int, log: Path, **settings: object) -> subprocess.Popen:
     env = {k: v for k, v in os.environ.items() if k != "REDIS_URL"}
-    env.update(DATA_DIR=str(data_dir), API_PORT=str(port))
+    # this checkout's code, also where the console script's install points elsewhere
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    env.update(DATA_DIR=str(data_dir), API_PORT=str(port),
+               **{k.upper(): str(v) for k, v in settings.items()})
     with open(log, "ab") as out:
         return subprocess.Popen([CLI, "serve"], env=env, cwd=ROOT, stdout=out,
                                 stderr=subprocess.STDOUT, start_new_session=True)
@@ -44,7 +47,7 @@ def wait_ready(proc: subprocess.Popen, log: Path, port: int) -> str:
 def stop_and_check(proc: subprocess.Popen, sig: int) -> None:
     family = [proc.pid, *descendants(proc.pid)]
     names = {psutil.Process(p).name() for p in family if alive([p])}
-    assert len(family) >= 4, names  # serve, redis-server, worker (+ pool), uvicorn
+    assert len(family) >= 5, names  # serve, supervisord, redis-server, worker (+ pool), uvicorn
     try:
         if sig == signal.SIGTERM:
             os.killpg(proc.pid, sig)  # to its process group, as a service manager does

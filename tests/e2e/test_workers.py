@@ -26,10 +26,12 @@ SLOW = {"pipeline": [{"detector": "temporal", "sigma": 0.01}, {"detector": "patc
 @pytest.fixture(scope="module")
 def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
           compiled_detectors: None) -> Iterator[Stack]:
-    # a short visibility timeout, so that a job of a vanished worker is re-delivered quickly
+    # quick heartbeats and sweeps, so that a job of a vanished worker is queued again at once;
+    # a time limit with room for a loaded machine (the redelivery is the sweep's, not Redis's)
     with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url(), workers=2,
-                       max_active_jobs_per_user=10, task_time_limit=60,
-                       visibility_timeout=65) as s:
+                       max_active_jobs_per_user=10, task_time_limit=300,
+                       visibility_timeout=320, heartbeat_interval_seconds=1,
+                       stale_job_seconds=5) as s:
         yield s
 
 
@@ -118,7 +120,8 @@ def test_whole_worker_killed_job_is_redelivered_to_another(
     with stack.client(key) as client:
         done = wait_job(client, job, ("successful", "failed"), timeout=300)
     assert done["status"] == "successful", done["message"]
-    assert Store(stack.data_dir / "service.sqlite3").get_job(job).attempts == 2
+    record = Store(stack.data_dir / "service.sqlite3").get_job(job)
+    assert (record.attempts, record.requeues) == (2, 1)  # queued again by the other's sweep
     stack.workers.remove(victim)
     stack.start_worker()  # back to two for the tests that follow
     stack.wait_workers_ready()

@@ -75,7 +75,7 @@ def test_transient_with_trajectory_is_clusters_or_free_space():
     arms = {int(a[0]): tuple(a[1:]) for a in params.lever_arms}
     origin = scanner_origins(sim.gps_time, sim.point_source_id, sim.trajectory, arms)
     free = detect_free_space(sim.xyz, origin).flagged
-    clusters = detect_transient(sim.xyz, sim.gps_time).flagged
+    clusters = detect_transient(sim.xyz, sim.gps_time, sim.point_source_id).flagged
     np.testing.assert_array_equal(result.flagged, clusters | free)
     assert result.info["points_flagged_by_free_space"] == int(free.sum()) > 0
     assert result.info["points_flagged_by_clusters"] == int(clusters.sum())

@@ -176,6 +176,36 @@ def test_retention_deletes_old_results_only(service, store, storage, settings,
     assert not storage.exists(upload.key)
 
 
+def test_retention_removes_expired_resumable_uploads(service, store, settings) -> None:
+    """An unfinished tus upload past its expiry goes with its partial file, and the bytes it
+    reserved are free again; one still in time stays; stray partial files older than any
+    upload may live go too."""
+    alice, _ = store.add_user("alice")
+    now = datetime.now(UTC)
+
+    def stamp(moment: datetime) -> str:
+        return moment.isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+    stale = store.add_resumable(alice.id, "a.las", "cloud", 1000, stamp(now - timedelta(hours=1)),
+                                "host", max_stored_bytes=settings.max_stored_bytes_per_user)
+    fresh = store.add_resumable(alice.id, "b.las", "cloud", 500, stamp(now + timedelta(hours=1)),
+                                "host")
+    folder = settings.resumable_dir
+    folder.mkdir(parents=True)
+    for upload in (stale, fresh):
+        (folder / f"{upload.id}.part").write_bytes(b"LASF")
+    stray = folder / "0123.part"
+    stray.write_bytes(b"LASF")
+    old = (now - timedelta(hours=settings.resumable_expiry_hours + 2)).timestamp()
+    os.utime(stray, (old, old))
+    assert store.stored_bytes(alice.id) == 1500
+    assert service.cleanup(now=now) == 1
+    assert store.get_resumable(stale.id, alice.id) is None
+    assert store.get_resumable(fresh.id, alice.id) is not None
+    assert sorted(p.name for p in folder.iterdir()) == [f"{fresh.id}.part"]
+    assert store.stored_bytes(alice.id) == 500
+
+
 def _part(tmp_path: Path, settings: Settings) -> Path:
     part = settings.incoming_dir / "x.part"
     part.parent.mkdir(parents=True, exist_ok=True)
@@ -186,7 +216,7 @@ def _part(tmp_path: Path, settings: Settings) -> Path:
 
 def run_cli(tmp_path: Path, *args: str, **settings: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, DATA_DIR=str(tmp_path / "data"), **settings)
-    return subprocess.run([str(Path(sys.executable).parent / "lidar-outliers"), *args],
+    return subprocess.run([sys.executable, "-m", "lidar_outliers", *args],  # this checkout
                           env=env, cwd=ROOT, capture_output=True, text=True, timeout=60)
 
 

@@ -57,7 +57,7 @@ def test_a_new_database_gets_the_schema_of_the_code(empty_url: str) -> None:
     try:
         assert database.current(engine) is None
         database.upgrade(engine)
-        assert database.current(engine) == database.head() == "0002"
+        assert database.current(engine) == database.head() == "0005"
         assert schema_differences(engine) == []
         database.upgrade(engine)  # again: nothing to do
         assert database.current(engine) == database.head()
