@@ -56,10 +56,12 @@ POINT_DTYPE = np.dtype([
     ("classification", "u1"), ("intensity", "<u2"), ("index", "<i8"),
 ])
 #: Points per core tile the automatic tile size aims at at the mean density (denser parts of a
-#: file get more; a 617 k-point tile of the default pipeline peaked at 2.1 GB), and files up to
-#: which the whole cloud is run in memory instead.
+#: file get more; a 617 k-point tile of the default pipeline peaked at 2.1 GB).
 TILE_POINTS = 250_000
-WHOLE_CLOUD_POINTS = 1_500_000
+#: Files up to this many points run whole in memory unless a tile size is given: the default
+#: pipeline holds about 680 bytes a point, so a whole run stays near 2 GB (3 M x 680 B); larger
+#: files run in tiles, which cost an extra pass over the file.
+WHOLE_CLOUD_POINTS = 3_000_000
 MANIFEST = "tiles.json"
 #: A tile whose points reach further than its halo is run again with the halo times this.
 HALO_GROWTH = 2.0
@@ -213,7 +215,8 @@ def stage_halos(stages: Iterable[StageModel], trajectory: bool = False) -> list[
                     "(free-space evidence)")
         halo = spec.halo(stage.parameters())
         if halo is None:
-            return f"{stage.detector} with these parameters depends on the whole cloud"
+            return (f"{stage.detector}: {spec.whole_cloud}" if spec.whole_cloud else
+                    f"{stage.detector} with these parameters depends on the whole cloud")
         halos.append(float(halo))
     return halos
 

@@ -34,7 +34,7 @@ from lidar_outliers.jobs.queue import (
 )
 from lidar_outliers.jobs.settings import get_settings
 from lidar_outliers.jobs.storage import Storage, open_storage
-from lidar_outliers.jobs.store import Store
+from lidar_outliers.jobs.store import TILED_HOST, Store
 from lidar_outliers.jobs.tiles import (
     fail_tiled_job,
     job_cells,
@@ -92,6 +92,7 @@ def run_tile(job_id: str, cell: list[int], total: int, phase: int | None = None,
     """One tile (or its values for stage ``phase``'s estimate); its failure fails the job with
     the tile's message, then propagates (so the chord knows)."""
     settings, store, storage = get_settings(), _store(), _storage()
+    store.beat([job_id], TILED_HOST)
     try:
         ran = run_job_tile(settings, store, storage, job_id, (int(cell[0]), int(cell[1])),
                            values_of=phase)
@@ -109,6 +110,7 @@ def run_tile(job_id: str, cell: list[int], total: int, phase: int | None = None,
                        + (disk_full_message(exc) or f"internal error: {type(exc).__name__}: {exc}"),
                        settings)
         raise
+    store.beat([job_id], TILED_HOST)
     if ran:
         _count_tile(store, job_id, cell, total, phase, span)
     return ran
@@ -130,11 +132,13 @@ def _count_tile(store: Store, job_id: str, cell: list[int], total: int, phase: i
 def pin_tiles(job_id: str, phase: int) -> None:
     """Fix the estimate from every tile's values, then queue the next round of tiles."""
     settings, store, storage = get_settings(), _store(), _storage()
+    store.beat([job_id], TILED_HOST)
     try:
         pinned = pin_job_stage(settings, store, storage, job_id, phase)
     except LidarOutliersError as exc:
         fail_tiled_job(store, storage, job_id, str(exc))
         raise
+    store.beat([job_id], TILED_HOST)
     if pinned:
         dispatch_tiles(job_id, job_cells(storage, job_id))
 
@@ -149,6 +153,7 @@ def _forget_counts(job_id: str) -> None:
 @app.task(name=MERGE_TILES_TASK, acks_late=True, reject_on_worker_lost=True)
 def merge_tiles(job_id: str) -> str | None:
     _forget_counts(job_id)
+    _store().beat([job_id], TILED_HOST)
     status = merge_job(get_settings(), _store(), _storage(), job_id)
     return status.value if status else None
 

@@ -116,6 +116,7 @@ class Detector:
     for neighbourhoods set by the data (k nearest), the reach each point used; a tile whose
     points reached further than the halo is run again with a wider one. ``uses_trajectory``:
     with a trajectory the detector follows beams across the cloud, so it does not run in tiles.
+    ``whole_cloud``: why the detector needs the whole cloud (its halo None), for the statistics.
     """
 
     name: str
@@ -128,6 +129,7 @@ class Detector:
     halo: Halo = no_halo
     reach: Reach | None = None
     uses_trajectory: bool = False
+    whole_cloud: str | None = None
     estimate: Estimate | None = None
     model: type[StageModel] = field(init=False, repr=False)
 

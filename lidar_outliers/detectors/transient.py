@@ -77,14 +77,6 @@ def _free_space(
     return seen, info
 
 
-def reach(cloud: Cloud, params: TransientParameters, where: np.ndarray) -> np.ndarray:
-    """How far each point's cluster test looks (:func:`algorithms.transient.transient_reach`)."""
-    from algorithms.transient import transient_reach
-
-    return transient_reach(cloud.xyz, cloud.require_gps_time("transient"), k=params.k,
-                           radius=params.radius, min_dt=params.min_dt)
-
-
 DETECTOR = Detector(
     name="transient",
     parameters=TransientParameters,
@@ -93,9 +85,9 @@ DETECTOR = Detector(
              "again (moving objects)."),
     flag_bit=128,
     needs=("gps_time",),
-    # a first guess; single-epoch clusters reach as far as they extend. Free-space evidence
-    # (with a trajectory) needs every beam that crosses a tile: not run in tiles.
-    halo=lambda params: 8 * params.radius,
-    reach=reach,
+    # whether a floating cluster's place was seen again depends on the returns its scanner
+    # fired just before and after it, which may lie anywhere: not run in tiles
+    whole_cloud=("a cluster is compared with the returns its scanner fired just before and "
+                 "after it (its scan-line neighbours), which may lie anywhere in the cloud"),
     uses_trajectory=True,
 )

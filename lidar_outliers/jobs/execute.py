@@ -202,6 +202,9 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
         cells = split_job(settings, store, storage, job_id, source, scratch,
                           Progress(store, job_id, attempt))
         if cells:
+            # from here the tiles keep the job's heartbeat, not this process
+            if not store.hand_to_tiles(job_id, attempt):
+                raise Superseded("the job was queued again")
             store.set_progress(job_id, 5, f"{len(cells)} tiles queued")
             dispatch(job_id, cells)
             return None

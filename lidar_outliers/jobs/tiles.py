@@ -26,6 +26,7 @@ from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.callbacks import FAILED, SUCCESS
 from lidar_outliers.jobs.execute import (
     Progress,
+    Superseded,
     disk_full_message,
     fail_job,
     notify,
@@ -216,6 +217,8 @@ def merge_job(settings: Settings, store: Store, storage: Storage, job_id: str) -
     progress = Progress(store, job_id)
     try:
         stored = _merge(storage, job_id, job, scratch, progress)
+    except Superseded:
+        return None  # queued again: the job's files are the new delivery's
     except CancelledError:
         quietly(storage.delete_prefix, layout.job_prefix(job_id))
         return JobStatus.dismissed

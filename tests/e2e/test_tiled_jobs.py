@@ -1,6 +1,8 @@
 """One job over two workers: a job of more than TILE_JOB_POINTS points is cut into tiles that
 both worker processes run, merged in the input's order: the same result as one machine. A
-corrupt tile fails the job with the tile's message and leaves nothing of a result."""
+corrupt tile fails the job with the tile's message and leaves nothing of a result. The workers
+beat and sweep every second and take a job without a heartbeat for 5 s for a dead worker's: no
+process holds a job while its tiles run, yet none is queued again."""
 
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ import laspy
 import numpy as np
 import pytest
 
+from lidar_outliers.jobs.store import Store
 from lidar_outliers.process import process_file
 from tests.e2e.stack import RedisServer, Stack, alive, running_stack, wait_for, wait_job
 from tests.lasfiles import tile_scene
@@ -28,8 +31,12 @@ PIPELINE = {"pipeline": [{"detector": "dror", "origin": SENSOR, "multiplier": 8.
 @pytest.fixture(scope="module")
 def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
           compiled_detectors: None) -> Iterator[Stack]:
+    # quick heartbeats and sweeps (as in test_workers): a tiled job is not taken for a dead
+    # worker's while no process holds it
     with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url(), workers=2,
-                       tile_job_points=2000, tile_size=3.0) as s:
+                       tile_job_points=2000, tile_size=3.0, task_time_limit=300,
+                       visibility_timeout=320, heartbeat_interval_seconds=1,
+                       stale_job_seconds=5) as s:
         yield s
 
 
@@ -43,9 +50,9 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tile_scene(tmp_path_factory.mktemp("in") / "scene.las")
 
 
-#: transient, then height_field with sigma estimated from the whole cloud: a round of tiles
+#: patch, then height_field with sigma estimated from the whole cloud: a round of tiles
 #: gathers the residuals, one task fixes sigma, a second round runs the pipeline.
-ESTIMATED = {"pipeline": [{"detector": "transient"}, {"detector": "height_field"}]}
+ESTIMATED = {"pipeline": [{"detector": "patch", "k": 30}, {"detector": "height_field"}]}
 
 
 def submit(stack: Stack, key: str, path: Path, inputs: dict | None = None) -> str:
@@ -55,6 +62,12 @@ def submit(stack: Stack, key: str, path: Path, inputs: dict | None = None) -> st
                              data={"inputs": json.dumps(inputs or PIPELINE)})
         assert answer.status_code == 201, answer.text
         return answer.json()["jobID"]
+
+
+def requeues(stack: Stack, job: str) -> int:
+    record = Store(stack.data_dir / "service.sqlite3", migrate=False).get_job(job)
+    assert record is not None
+    return record.requeues
 
 
 def tile_runs(stack: Stack) -> list[int]:
@@ -92,6 +105,19 @@ def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, t
         if "sigma_source" in here["info"]:
             assert remote["info"]["sigma"] == pytest.approx(here["info"]["sigma"], rel=1e-9)
     assert not (stack.data_dir / "jobs" / job / "tiles").exists()
+    assert requeues(stack, job) == 0
+
+
+def test_transient_job_runs_whole_on_one_worker(stack, key, scene):
+    """transient needs the whole cloud: a large job of it is not cut into tiles."""
+    job = submit(stack, key, scene, {"pipeline": [{"detector": "transient"}]})
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+        assert done["status"] == "successful", done["message"]
+        stats = client.get(f"/jobs/{job}/results/statistics").json()
+    assert stats["mode"] == "in memory" and "tiles" not in stats
+    assert not (stack.data_dir / "jobs" / job / "tiles").exists()
+    assert requeues(stack, job) == 0
 
 
 def test_a_corrupt_tile_fails_the_job_with_its_message(stack, key, scene):
@@ -146,6 +172,7 @@ def test_a_tile_whose_worker_is_killed_is_run_again_and_only_it(stack, key, scen
         for what in ("received", "succeeded"))
     assert succeeded == count
     assert received == count + 1  # the killed tile twice, every other tile once
+    assert requeues(stack, job) == 0
     local = tmp_path / "local.las"
     process_file(scene, local, PIPELINE)
     assert np.array_equal(laspy.read(local).outlier_flags, laspy.read(out).outlier_flags)
