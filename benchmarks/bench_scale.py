@@ -8,7 +8,7 @@ through the command line first: the ratio column compares each run with it.
     .venv/bin/python benchmarks/bench_scale.py --points 50000000          # the real benchmark
     .venv/bin/python benchmarks/bench_scale.py --points 2500000 --workers 1 2
     .venv/bin/python benchmarks/bench_scale.py --points 2500000 \\
-        --params '{"pipeline": [{"detector": "height_field", "sigma": 0.01}]}'
+        --params '{"pipeline": [{"detector": "height_field", "sigma": 0.01, "low": false}]}'
 
 Peak memory is the largest resident set a process had, sampled every 0.2 s (psutil) over the
 command's or the service's whole process tree (for the service: the API, Redis, the Celery main

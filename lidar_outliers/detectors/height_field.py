@@ -47,8 +47,11 @@ DETECTOR = Detector(
              "clumps under the lowest ground-like surface (mirror returns)."),
     flag_bit=64,
     # k nearest neighbours besides the point; sigma "auto" is estimated from every point's
-    # residual first
-    halo=lambda params: 2.0,
+    # residual first. The low test's pieces and voxel size are the whole cloud's: not in tiles
+    halo=lambda params: None if params.low else 2.0,
+    whole_cloud=("its low test (low: true, the default) cuts the cloud into pieces joined "
+                 "through occupied voxels, at a voxel size found over the whole cloud; with "
+                 "low: false it runs in tiles"),
     reach=lambda cloud, params, where: knn_reach(cloud.xyz, params.k + 1, where),
     estimate=Estimate(applies=lambda params: params.sigma == "auto", values=residuals,
                       pin=pin_sigma),

@@ -52,7 +52,8 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 #: patch, then height_field with sigma estimated from the whole cloud: a round of tiles
 #: gathers the residuals, one task fixes sigma, a second round runs the pipeline.
-ESTIMATED = {"pipeline": [{"detector": "patch", "k": 30}, {"detector": "height_field"}]}
+ESTIMATED = {"pipeline": [{"detector": "patch", "k": 30},
+                          {"detector": "height_field", "low": False}]}
 
 
 def submit(stack: Stack, key: str, path: Path, inputs: dict | None = None) -> str:

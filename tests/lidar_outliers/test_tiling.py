@@ -32,9 +32,9 @@ PIPELINES = {
     "section": [{"detector": "section", "section_size": 2.0}],
     "dror": [{"detector": "dror", "origin": SENSOR, "multiplier": 8.0}],
     "snow": [{"detector": "snow", "origin": SENSOR, "multiplier": 20.0}],
-    "height_field": [{"detector": "height_field", "sigma": 0.01}],
-    "height_field, sigma auto": [{"detector": "height_field"}],
-    "height_field, then patch": [{"detector": "height_field", "sigma": 0.01},
+    "height_field": [{"detector": "height_field", "sigma": 0.01, "low": False}],
+    "height_field, sigma auto": [{"detector": "height_field", "low": False}],
+    "height_field, then patch": [{"detector": "height_field", "sigma": 0.01, "low": False},
                                  {"detector": "patch", "k": 30}],
     "dror, then section": [
         {"detector": "dror", "origin": SENSOR, "multiplier": 8.0},
@@ -110,7 +110,8 @@ def test_transient_runs_whole_and_says_why(moving, tmp_path):
     which may lie anywhere in the cloud: transient does not run in tiles, and the pipeline's
     result is the whole cloud's."""
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
-    pipeline = {"pipeline": [{"detector": "transient"}, {"detector": "height_field"}]}
+    pipeline = {"pipeline": [{"detector": "transient"},
+                             {"detector": "height_field", "low": False}]}
     process_file(moving, whole, pipeline)
     stats = process_file(moving, tiled, pipeline, tile_size=4.0)
     assert stats["mode"] == "in memory" and "scan-line neighbours" in stats["tiling"]
