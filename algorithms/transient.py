@@ -193,46 +193,6 @@ def floating_clusters(xyz: np.ndarray, persistent: np.ndarray, idx: np.ndarray,
     return floating, flagged
 
 
-def transient_reach(
-    xyz: np.ndarray, gps_time: np.ndarray, *, k: int = 24, radius: float = 0.2,
-    min_dt: float = 0.5,
-) -> np.ndarray:
-    """(n,) metres around each point that its score depends on.
-
-    A persistent point's score depends on the points within ``radius``. A single-epoch point's
-    depends on its whole cluster: on the points within ``radius`` of every member (are they
-    single-epoch, do they link the cluster on) and within ``radius`` of those (are they
-    persistent), so its reach is the cluster's extent (its bounding box's diagonal, an upper
-    bound of any member's distance) plus twice ``radius``.
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    arr = np.asarray(xyz, dtype=np.float64)
-    n = len(arr)
-    reach = np.full(n, float(radius))
-    if n < 2:
-        return reach
-    local = arr - arr.mean(axis=0)
-    t = np.asarray(gps_time, dtype=np.float64)
-    idx, near = neighbour_table(local, k, radius)
-    single = np.flatnonzero(~persistent_points(t - t.min(), idx, near, min_dt))
-    if single.size == 0:
-        return reach
-    pairs = cKDTree(local[single]).query_pairs(radius, output_type="ndarray")
-    m = single.size
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
-    n_comp, label = connected_components(graph, directed=False)
-    lo = np.full((n_comp, 3), np.inf)
-    hi = np.full((n_comp, 3), -np.inf)
-    np.minimum.at(lo, label, local[single])
-    np.maximum.at(hi, label, local[single])
-    extent = np.linalg.norm(hi - lo, axis=1)
-    reach[single] = extent[label] + 2.0 * radius
-    return reach
-
-
 def detect_transient(
     xyz: np.ndarray,
     gps_time: np.ndarray,
