@@ -49,6 +49,7 @@ imported when the detector runs, not with its parameters.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -84,13 +85,39 @@ def studentised_full(terms: np.ndarray) -> np.ndarray:
 
 def estimate_sigma(terms: np.ndarray) -> float:
     """Robust sigma (m): MAD of the full-patch studentised residuals (evenly strided sample)."""
-    r = studentised_full(terms)
-    r = r[np.isfinite(r)]
-    if r.size == 0:
+    return sigma_of_residuals([studentised_full(terms)])
+
+
+def sigma_of_residuals(parts: Iterable[np.ndarray], sample: int = SIGMA_SAMPLE) -> float:
+    """:func:`estimate_sigma` of the residuals of all the points, given in order as ``parts``
+    (NaN: untested), reading each part twice and keeping only the sample: the MAD of every
+    ``max(1, finite // sample)``-th finite residual. ``parts`` is called on twice (a list, or
+    memory-mapped pieces of a large array)."""
+    parts = list(parts)
+    finite = sum(int(np.count_nonzero(np.isfinite(p))) for p in parts)
+    if finite == 0:
         return float("nan")
-    step = max(1, r.size // SIGMA_SAMPLE)
-    r = r[::step]
+    step = max(1, finite // sample)
+    kept, offset = [], 0
+    for part in parts:
+        r = np.asarray(part)[np.isfinite(part)]
+        kept.append(r[(-offset) % step::step])
+        offset += r.size
+    r = np.concatenate(kept)
     return float(MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
+
+
+def full_residuals(xyz: np.ndarray, k: int) -> np.ndarray:
+    """(n,) full-patch studentised residual of each point (NaN where untested), as
+    ``sigma="auto"`` estimates from them (the points centred as :func:`detect_height_field`
+    centres them)."""
+    from algorithms.height_field_fits import all_terms
+
+    arr = check_xyz(xyz)
+    if len(arr) == 0:
+        return np.zeros(0)
+    local = arr - arr.mean(axis=0)
+    return studentised_full(all_terms(local, neighbours(local, k)))
 
 
 def neighbours(xyz: np.ndarray, k: int) -> np.ndarray:

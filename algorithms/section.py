@@ -1,10 +1,11 @@
 """The `section` detector: algorithm (c) of Leslar, Wang & Hu (2010).
 
 The cloud is cut into square XY sections of ``section_size`` metres (grid anchored at the
-lower-left corner of the cloud's bounding box). One quadric (eqs. 18-31, :mod:`algorithms.quadric`)
-is fitted per section; the points whose T_i (eq. 31) exceeds the two-sided critical value of
-t(n - 9), n the points still in the section, are removed together and the surface is fitted again
-from a fresh algebraic start, until a fit removes nothing or ``max_iterations`` fits were made.
+lower-left corner of the cloud's bounding box, or at a given ``anchor``). One quadric (eqs. 18-31,
+:mod:`algorithms.quadric`) is fitted per section; the points whose T_i (eq. 31) exceeds the
+two-sided critical value of t(n - 9), n the points still in the section, are removed together and
+the surface is fitted again from a fresh algebraic start, until a fit removes nothing or
+``max_iterations`` fits were made.
 
 Scores: a removed point keeps the T_i of the fit that removed it; a kept point gets its T_i in the
 last fit. A section that has fewer than the points needed for eq. 31 to flag anything at ``alpha``
@@ -34,7 +35,7 @@ from algorithms.quadric import (
 )
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
-from algorithms.tiles import grid_cells, group_by_cell
+from algorithms.tiles import group_by_cell
 
 #: Adjustments per fit at most (over all stages, :func:`algorithms.quadric.stage_budget`) and the
 #: convergence tolerance on ||da||.
@@ -184,6 +185,15 @@ def balanced_buckets(sizes: np.ndarray, n_buckets: int) -> tuple[np.ndarray, np.
     return offsets.astype(np.int64), sections.astype(np.int64)
 
 
+def section_cells(xy: np.ndarray, size: float) -> np.ndarray:
+    """(n,) int64 label of each point's square section of a grid starting at XY (0, 0)."""
+    if xy.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    ij = np.floor(xy / size).astype(np.int64)
+    ij -= ij.min(axis=0)  # points left of the anchor get their own sections
+    return ij[:, 1] * (int(ij[:, 0].max()) + 1) + ij[:, 0]
+
+
 def detect_section(
     xyz: np.ndarray,
     *,
@@ -192,6 +202,7 @@ def detect_section(
     alpha: float = 0.001,
     max_iterations: int = 10,
     accelerate: bool = True,
+    anchor: np.ndarray | None = None,
 ) -> DetectorResult:
     """Fit one quadric per square XY section and remove outliers iteratively.
 
@@ -214,6 +225,9 @@ def detect_section(
         fixed points, but a fit that has several may end in another one; the accelerated path
         converges on more sections (65 % of the points of a simulated mobile cloud tested
         against 35 %).
+    anchor : (2,) float, optional
+        XY corner where the grid of sections starts, in the frame of ``xyz`` (default: the
+        lower-left corner of the points), so that a part of a cloud keeps the whole's sections.
 
     Returns
     -------
@@ -230,8 +244,11 @@ def detect_section(
     n = pts.shape[0]
     min_points = max(min_patch_size(alpha), DOF_LOSS + 1)
 
-    local = pts - pts.min(axis=0) if n else pts
-    cell, _ = grid_cells(local[:, :2], float(section_size))
+    corner = pts.min(axis=0) if n else np.zeros(3)
+    if anchor is not None:  # z too stays put: a tile computes with the whole cloud's numbers
+        corner = np.r_[np.asarray(anchor, dtype=np.float64), 0.0]
+    local = pts - corner
+    cell = section_cells(local[:, :2], float(section_size))
     order, offsets = group_by_cell(cell)
     sizes = np.diff(offsets)
     max_n = int(sizes.max()) if sizes.size else 0

@@ -28,6 +28,10 @@ class Cloud:
         Optional platform path (:mod:`~lidar_outliers.trajectory`): time, then x, y, z in the
         same local frame as ``xyz`` (file coordinates minus ``origin``); the ``transient``
         detector adds free-space evidence with it. A subset keeps the whole trajectory.
+    anchor : (2,) float64 or None
+        Lower-left XY corner of the whole file in the local frame, where grids of square cells
+        (``section``) start; None: the corner of the points at hand. A subset and a tile keep
+        it, so their cells are the whole cloud's.
     """
 
     xyz: np.ndarray
@@ -37,6 +41,7 @@ class Cloud:
     classification: np.ndarray
     intensity: np.ndarray | None = None
     trajectory: np.ndarray | None = None
+    anchor: np.ndarray | None = None
 
     @classmethod
     def from_arrays(
@@ -85,6 +90,7 @@ class Cloud:
             classification=self.classification[index],
             intensity=None if self.intensity is None else self.intensity[index],
             trajectory=self.trajectory,
+            anchor=self.anchor,
         )
 
     def with_trajectory(self, trajectory: np.ndarray) -> Cloud:

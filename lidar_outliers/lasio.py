@@ -373,6 +373,15 @@ def grid_origin(header: laspy.LasHeader) -> tuple[np.ndarray, np.ndarray]:
     return grid, origin
 
 
+def local_anchor(header: laspy.LasHeader, grid: np.ndarray) -> np.ndarray:
+    """(2,) the header's lower-left XY corner in the local frame, computed as :func:`local_xyz`
+    computes a point's coordinates (so the lowest point lies exactly on it, far from 0 too)."""
+    scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
+    low = np.round((np.asarray(header.mins, dtype=np.float64) - offsets) / scales)
+    low = np.where(np.isfinite(low), low, grid)
+    return ((low - grid) * scales)[:2]
+
+
 def local_xyz(
     chunk: laspy.ScaleAwarePointRecord, grid: np.ndarray, scales: np.ndarray,
     out: np.ndarray | None = None,
@@ -431,7 +440,7 @@ def read_cloud(
         start = stop
         if progress is not None:
             progress(lo + (hi - lo) * stop / max(n, 1), f"reading {stop:,} of {n:,} points")
-    return Cloud(xyz, origin, gps, psid, cls, intensity)
+    return Cloud(xyz, origin, gps, psid, cls, intensity, anchor=local_anchor(header, grid))
 
 
 #: Points read for the profile choice (:func:`read_profile_sample`), whatever the file's size.

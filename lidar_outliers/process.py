@@ -18,6 +18,7 @@ from lidar_outliers.output import result_dimensions
 from lidar_outliers.params import FLAG_BITS, PipelineParams, parse_pipeline_params
 from lidar_outliers.pipeline import Progress, check_noise_class, jsonable, run_pipeline
 from lidar_outliers.streaming import stream_temporal, temporal_only
+from lidar_outliers.tiling import WHOLE_CLOUD_POINTS, auto_tile_size, process_tiled
 from lidar_outliers.trajectory import check_trajectory, describe_trajectory, read_trajectory
 
 #: A temporal-only pipeline streams above this many points (in memory: ~40 bytes a point).
@@ -37,6 +38,7 @@ def process_file(
     chunk_points: int = lasio.DEFAULT_CHUNK_POINTS,
     streaming: bool | None = None,
     trajectory: str | os.PathLike[str] | np.ndarray | None = None,
+    tile_size: float | None = None,
 ) -> dict[str, Any]:
     """Validate, read, run the pipeline, write the flagged cloud; return the statistics.
 
@@ -52,6 +54,12 @@ def process_file(
     per scanner runs in one streaming pass when the file holds more than
     ``STREAM_MIN_POINTS`` points (``streaming=None``), always (``True``) or never (``False``);
     below that size the in-memory path is faster and its memory is bounded by the threshold.
+
+    ``tile_size`` (metres) runs the pipeline tile by tile (:mod:`lidar_outliers.tiling`: the
+    same result, memory set by the tile); None tiles files of more than
+    ``WHOLE_CLOUD_POINTS`` points with a tile size chosen from their density. A pipeline with a
+    stage that depends on the whole cloud runs in memory, and the statistics' ``tiling`` says
+    why.
     """
     t0 = time.perf_counter()
     if params is None:
@@ -86,7 +94,18 @@ def process_file(
         )
         if stats is not None:
             stats["seconds"] = {"total": round(time.perf_counter() - t0, 4)}
-            return _finish(stats, out_path, compress, stats_path, progress, traj_info)
+            return finish_statistics(stats, out_path, compress, stats_path, progress, traj_info)
+    tiling_note = None
+    if tile_size is not None and not tile_size > 0:
+        raise ParameterError(f"tile_size must be > 0 metres, got {tile_size}")
+    if (tile_size is not None or facts.points > WHOLE_CLOUD_POINTS) and facts.points > 0:
+        size = tile_size if tile_size is not None else auto_tile_size(facts)
+        tiled = process_tiled(in_path, out_path, params, facts, evidence, tile_size=size,
+                              compress=compress, progress=progress, chunk_points=chunk_points,
+                              trajectory=traj)
+        if isinstance(tiled, dict):
+            return finish_statistics(tiled, out_path, compress, stats_path, progress, traj_info)
+        tiling_note = f"whole cloud in memory: {tiled}"
     # Up to STREAM_MIN_POINTS the point records stay in memory for the writer (one read and,
     # for LAZ, one decompression instead of two); larger files are read again.
     records: list[Any] | None = [] if facts.points <= STREAM_MIN_POINTS else None
@@ -113,13 +132,15 @@ def process_file(
     stats["mode"] = "in memory"
     if streaming_note:
         stats["streaming"] = streaming_note
+    if tiling_note:
+        stats["tiling"] = tiling_note
     stats["seconds"] = {
         "read": round(t_read - t0, 4),
         "detect": round(t_detect - t_read, 4),
         "write": round(t_write - t_detect, 4),
         "total": round(t_write - t0, 4),
     }
-    return _finish(stats, out_path, compress, stats_path, progress, traj_info)
+    return finish_statistics(stats, out_path, compress, stats_path, progress, traj_info)
 
 
 def _load_trajectory(
@@ -148,7 +169,7 @@ def _trajectory_use(stats: dict[str, Any], info: dict[str, Any]) -> dict[str, An
     return info
 
 
-def _finish(
+def finish_statistics(
     stats: dict[str, Any], out_path: Path, compress: bool,
     stats_path: str | os.PathLike[str] | None, progress: Progress | None,
     traj_info: dict[str, Any] | None = None,

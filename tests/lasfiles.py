@@ -167,3 +167,21 @@ def write_cloud(
               classification=np.ones(n, dtype=np.uint8),
               intensity=rng.integers(0, 1000, n).astype(np.uint16), vlrs=(), laz=laz)
     return idx
+
+
+def tile_scene(path: Path, n: int = 7000, seed: int = 3) -> Path:
+    """A sloped, rolling 24 x 24 m ground with a 2 m box on it, 1 % of points 1.5 m off the
+    surface, a few dark points (intensity 0), a drive's time stamps; near a UTM coordinate
+    (600,000, 5,000,000). For runs tile by tile against the whole cloud."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 24, (n, 2))
+    z = 0.05 * xy[:, 0] + 0.3 * np.sin(xy[:, 1] / 3) + rng.normal(0, 0.005, n)
+    z[(np.abs(xy[:, 0] - 12) < 3) & (np.abs(xy[:, 1] - 10) < 2)] += 2.0
+    off = rng.choice(n, n // 100, replace=False)
+    z[off] += rng.choice([-1.5, 1.5], off.size)
+    intensity = rng.integers(1, 50, n).astype(np.uint16)
+    intensity[rng.choice(n, n // 25, replace=False)] = 0
+    return write_las(path, np.column_stack([xy + [600_000, 5_000_000], z + 50]),
+                     gps_time=np.sort(rng.uniform(1000, 1100, n)),
+                     point_source_id=np.ones(n, np.uint16), intensity=intensity,
+                     offsets=(600_000, 5_000_000, 0), vlrs=())

@@ -4,6 +4,7 @@ Every ``HEARTBEAT_INTERVAL_SECONDS`` it records that the jobs this worker runs a
 sweeps for running jobs of vanished workers (:class:`lidar_outliers.jobs.janitor.Janitor`) and
 queues them again. The main process beats for its pool processes, so a job stuck in a long
 computation still beats, and one whose worker was killed (its pool dies with it) stops beating.
+It beats too for the tiled jobs whose tile, estimate or merge tasks this worker runs or holds.
 """
 
 from __future__ import annotations
@@ -16,12 +17,14 @@ from celery import bootsteps
 from celery.worker import state
 
 from lidar_outliers.jobs.janitor import Janitor
-from lidar_outliers.jobs.queue import RUN_JOB_TASK
+from lidar_outliers.jobs.queue import MERGE_TILES_TASK, PIN_TILES_TASK, RUN_JOB_TASK, RUN_TILE_TASK
 from lidar_outliers.jobs.settings import get_settings
 from lidar_outliers.jobs.storage import open_storage
-from lidar_outliers.jobs.store import Store
+from lidar_outliers.jobs.store import TILED_HOST, Store
 
 log = logging.getLogger(__name__)
+#: Tasks of a tiled job: their first argument is the job's id.
+TILE_TASKS = frozenset({RUN_TILE_TASK, PIN_TILES_TASK, MERGE_TILES_TASK})
 
 
 class Watchdog(bootsteps.StartStopStep):
@@ -53,6 +56,7 @@ class Watchdog(bootsteps.StartStopStep):
             janitor = self._janitor()
             running = [request.id for request in list(state.active_requests)]
             janitor.store.beat(running, self.host)
+            janitor.store.beat(tiled_jobs(), TILED_HOST)
             janitor.sweep()
         except Exception:  # the database may be away for a moment: the next tick tries again
             log.exception("heartbeat or sweep failed")
@@ -68,3 +72,12 @@ class Watchdog(bootsteps.StartStopStep):
         # first in the queue: the job was running already
         self.app.send_task(RUN_JOB_TASK, args=[job_id], kwargs={"requeue": requeues},
                            task_id=job_id, priority=0)
+
+
+def tiled_jobs() -> list[str]:
+    """The jobs of the tile tasks this worker runs or holds (prefetched)."""
+    jobs = set()
+    for request in list(state.active_requests) + list(state.reserved_requests):
+        if request.name in TILE_TASKS and request.args:
+            jobs.add(str(request.args[0]))
+    return sorted(jobs)

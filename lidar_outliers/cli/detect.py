@@ -139,8 +139,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fmt = parser.add_mutually_exclusive_group()
     fmt.add_argument("--laz", dest="laz", action="store_true", default=None, help="write LAZ")
     fmt.add_argument("--las", dest="laz", action="store_false", help="write uncompressed LAS")
+    parser.add_argument(
+        "--tile-size", type=_tile_size, metavar="METRES",
+        help="run tile by tile, square XY tiles of this edge (the same result as the whole cloud, "
+        "memory set by the tile); default: files of over 3 M points (about 2 GB in memory "
+        "whole) in tiles of about 250 k points, smaller ones whole",
+    )
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
+
+
+def _tile_size(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a positive number of metres, got {text}")
+    return value
 
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
@@ -263,7 +279,8 @@ def run(args: argparse.Namespace) -> int:
         laz = out.suffix.lower() == ".laz"
     with _progress_bar(enabled=not args.quiet and sys.stderr.isatty()) as progress:
         stats = process_file(args.input, out, params, laz=laz, progress=progress,
-                             stats_path=args.stats, trajectory=args.trajectory)
+                             stats_path=args.stats, trajectory=args.trajectory,
+                             tile_size=args.tile_size)
     if not args.stats:
         json.dump(stats, sys.stdout, indent=2)
         sys.stdout.write("\n")

@@ -54,6 +54,52 @@ class StageModel(BaseModel):
 
 
 Run = Callable[[Cloud, Any], DetectorResult | GroundResult]
+#: XY metres a point's result may depend on around it, from the stage's parameters; None: the
+#: result depends on the whole cloud (or on its time series), so the stage is not run in tiles.
+Halo = Callable[[Any], "float | None"]
+#: (n,) metres of the neighbourhood each point of ``cloud`` actually used (k-th neighbour,
+#: search radius), for the points of the (n,) bool mask (others: anything): for detectors
+#: whose reach depends on the data, checked against the halo.
+Reach = Callable[[Cloud, Any, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A parameter the detector estimates from the whole cloud (``height_field``'s ``sigma:
+    auto``), made of values each point has from its neighbourhood alone.
+
+    ``applies(params)``: whether these parameters ask for the estimate. ``values(cloud,
+    params)``: (n,) float, each point's value (NaN: none). ``pin(params, parts)``: the
+    parameters with the estimate fixed, and the statistics' info on it, from the values of all
+    the points in file order (``parts``: consecutive pieces). A tiled run computes the values
+    tile by tile, pins, then runs the tiles with the pinned parameters: the whole cloud's
+    result.
+    """
+
+    applies: Callable[[Any], bool]
+    values: Callable[[Cloud, Any], np.ndarray]
+    pin: Callable[[Any, list[np.ndarray]], tuple[Any, dict[str, Any]]]
+
+
+def no_halo(_params: Any) -> None:
+    """The default: not declared, so the stage runs on the whole cloud."""
+    return None
+
+
+def knn_reach(xyz: np.ndarray, k: int, where: np.ndarray) -> np.ndarray:
+    """(n,) distance from each point of the mask ``where`` to its k-th nearest point (itself
+    counted first; 0 outside the mask); inf where the cloud has fewer than k points (every
+    point then needs the whole cloud)."""
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    if n < k:
+        return np.full(n, np.inf)
+    out = np.zeros(n)
+    if np.any(where):
+        dist, _ = cKDTree(xyz).query(xyz[where], k=[k], workers=-1)
+        out[where] = dist[:, 0]
+    return out
 
 
 @dataclass(frozen=True)
@@ -63,6 +109,14 @@ class Detector:
     ``kind`` ``"outlier"`` sets bit ``flag_bit`` of ``outlier_flags`` and writes
     ``<name>_score``; ``"ground"`` writes classes 2/1 instead (no bit, no score). ``run`` gets
     the cloud and the stage's :class:`~algorithms.params.Parameters` instance.
+
+    ``halo(params)``: how far (XY metres) a point's result may depend on other points, so that
+    a tile run with that much of the neighbouring points around it gives the whole cloud's
+    result (:mod:`lidar_outliers.tiling`); None when it depends on the whole cloud. ``reach``:
+    for neighbourhoods set by the data (k nearest), the reach each point used; a tile whose
+    points reached further than the halo is run again with a wider one. ``uses_trajectory``:
+    with a trajectory the detector follows beams across the cloud, so it does not run in tiles.
+    ``whole_cloud``: why the detector needs the whole cloud (its halo None), for the statistics.
     """
 
     name: str
@@ -72,6 +126,11 @@ class Detector:
     kind: Literal["outlier", "ground"] = "outlier"
     flag_bit: int | None = None
     needs: tuple[str, ...] = ()
+    halo: Halo = no_halo
+    reach: Reach | None = None
+    uses_trajectory: bool = False
+    whole_cloud: str | None = None
+    estimate: Estimate | None = None
     model: type[StageModel] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

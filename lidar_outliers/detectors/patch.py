@@ -6,7 +6,7 @@ from __future__ import annotations
 from algorithms.patch import PatchParameters
 from algorithms.result import DetectorResult
 from lidar_outliers.cloud import Cloud
-from lidar_outliers.detectors.base import Detector
+from lidar_outliers.detectors.base import Detector, knn_reach
 
 
 def run(cloud: Cloud, params: PatchParameters) -> DetectorResult:
@@ -21,4 +21,7 @@ DETECTOR = Detector(
     run=run,
     summary="Quadric fitted to each point's k nearest neighbours, tested with eq. 31.",
     flag_bit=2,
+    # k nearest neighbours: a first guess, widened where a tile's patches reach further
+    halo=lambda params: 2.0,
+    reach=lambda cloud, params, where: knn_reach(cloud.xyz, params.k, where),
 )

@@ -14,7 +14,7 @@ def run(cloud: Cloud, params: SectionParameters) -> DetectorResult:
 
     return detect_section(
         cloud.xyz, section_size=params.section_size, sigma=params.sigma, alpha=params.alpha,
-        max_iterations=params.max_iterations,
+        max_iterations=params.max_iterations, anchor=cloud.anchor,
     )
 
 
@@ -24,4 +24,5 @@ DETECTOR = Detector(
     run=run,
     summary="One quadric per square XY section, refitted until no outlier remains.",
     flag_bit=4,
+    halo=lambda params: params.section_size,  # a section touching the tile lies within it
 )

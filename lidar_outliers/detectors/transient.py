@@ -85,4 +85,9 @@ DETECTOR = Detector(
              "again (moving objects)."),
     flag_bit=128,
     needs=("gps_time",),
+    # whether a floating cluster's place was seen again depends on the returns its scanner
+    # fired just before and after it, which may lie anywhere: not run in tiles
+    whole_cloud=("a cluster is compared with the returns its scanner fired just before and "
+                 "after it (its scan-line neighbours), which may lie anywhere in the cloud"),
+    uses_trajectory=True,
 )

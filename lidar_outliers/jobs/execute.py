@@ -13,7 +13,7 @@ import os
 import shutil
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
@@ -31,6 +31,8 @@ from lidar_outliers.params import PipelineParams
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+#: Hands a job's tiles to the queue: ``dispatch(job_id, cells)`` (the worker's chord).
+Dispatch = Callable[[str, Sequence[tuple[int, int]]], None]
 
 #: Write progress to the store at most this often (seconds) unless the percentage changes.
 PROGRESS_INTERVAL = 0.5
@@ -70,10 +72,14 @@ def execute_job(
     settings: Settings, store: Store, job_id: str,
     time_limit_errors: tuple[type[BaseException], ...] = (),
     storage: Storage | None = None,
+    dispatch: Dispatch | None = None,
     requeue: int = 0,
 ) -> JobStatus | None:
     """Run one delivery of a job; return its final status (None when there was nothing to do).
 
+    ``dispatch``: with it a job of more than ``TILE_JOB_POINTS`` points is cut into tiles that
+    any worker may run (:mod:`lidar_outliers.jobs.tiles`); the job is then still running when
+    this returns (``JobStatus.running``) and the merge of its tiles ends it.
     ``requeue``: the job's re-queue count when this message was sent
     (:mod:`lidar_outliers.jobs.janitor`); a message older than the job's latest re-queue is
     dropped, so a job runs once however many of its messages Redis delivers.
@@ -82,7 +88,7 @@ def execute_job(
     job's objects are (default: the one the settings name). The job's subscriber hears of its
     start and of its success or failure.
     """
-    status = _execute(settings, store, job_id, time_limit_errors, storage, requeue)
+    status = _execute(settings, store, job_id, time_limit_errors, storage, requeue, dispatch)
     if status in (JobStatus.successful, JobStatus.failed):
         job = store.get_job(job_id)
         if job is not None:
@@ -112,6 +118,7 @@ def _execute(
     time_limit_errors: tuple[type[BaseException], ...],
     storage: Storage | None,
     requeue: int,
+    dispatch: Dispatch | None,
 ) -> JobStatus | None:
     storage = storage or open_storage(settings)
     job = store.get_job(job_id)
@@ -123,7 +130,7 @@ def _execute(
     if job.status is JobStatus.running and job.attempts >= settings.max_attempts:
         # every earlier delivery died with its worker (SIGKILL, out of memory): give up
         store.transition(job_id, JobStatus.failed, died_message(job.attempts),
-                         stored_bytes=_quietly(storage.prefix_bytes, prefix))
+                         stored_bytes=quietly(storage.prefix_bytes, prefix))
         return JobStatus.failed
     started = store.transition(job_id, JobStatus.running, "reading the cloud",
                                worker_pid=os.getpid(), worker_host=socket.gethostname(),
@@ -135,46 +142,48 @@ def _execute(
     layout.sweep_scratch(settings, older_than=settings.visibility_timeout)
     scratch = layout.scratch(settings, f"job-{job_id}")
     try:
-        stored = _run(settings, store, storage, job_id, scratch, started.attempts)
+        stored = _run(settings, store, storage, job_id, scratch, started.attempts, dispatch)
     except Superseded:
         return None  # the job's files are the newer delivery's now
     except CancelledError:
-        _quietly(storage.delete_prefix, prefix)
+        quietly(storage.delete_prefix, prefix)
         if store.status(job_id) is JobStatus.dismissed:
             store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
     except LidarOutliersError as exc:
-        return _fail(store, storage, job_id, _disk_full_message(exc) or str(exc),
+        return fail_job(store, storage, job_id, disk_full_message(exc) or str(exc),
                      started.attempts)
     except MemoryError:
-        return _fail(store, storage, job_id, "the job ran out of memory", started.attempts)
+        return fail_job(store, storage, job_id, "the job ran out of memory", started.attempts)
     except time_limit_errors:
-        return _fail(store, storage, job_id,
+        return fail_job(store, storage, job_id,
                      f"the job exceeded the time limit of {settings.task_time_limit} s",
                      started.attempts)
     except Exception as exc:
         if is_disk_full(exc):
-            return _fail(store, storage, job_id, _disk_full_message(exc) or str(exc),
+            return fail_job(store, storage, job_id, disk_full_message(exc) or str(exc),
                          started.attempts)
         log.exception("job %s failed", job_id)
-        return _fail(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}",
+        return fail_job(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}",
                      started.attempts)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+    if stored is None:
+        return JobStatus.running  # the tiles run on the workers; the merge ends the job
     done = store.transition(job_id, JobStatus.successful, "done", stored_bytes=stored)
     if done is None:
         if store.status(job_id) is not JobStatus.dismissed:
             return None  # another delivery of the job ended it first; its files stay
-        _quietly(storage.delete_prefix, prefix)  # dismissed while the result was written
+        quietly(storage.delete_prefix, prefix)  # dismissed while the result was written
         return JobStatus.dismissed
     return JobStatus.successful
 
 
 def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
-         scratch: Path, attempt: int) -> int:
+         scratch: Path, attempt: int, dispatch: Dispatch | None = None) -> int | None:
     """The pipeline over a local copy of the job's input; the statistics name the user's
     files. The result and the statistics are put into the storage when both are complete.
-    Returns the bytes the job now keeps."""
+    Returns the bytes the job now keeps, or None when its tiles were handed to the queue."""
     from lidar_outliers.process import process_file  # heavy imports (numba) only when run
 
     job = store.get_job(job_id)
@@ -187,6 +196,18 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
     if "trajectory" in job.facts:
         trajectory = scratch / "trajectory.txt"
         stored += storage.get_file(layout.trajectory_key(job_id), trajectory)
+    if dispatch is not None:
+        from lidar_outliers.jobs.tiles import split_job
+
+        cells = split_job(settings, store, storage, job_id, source, scratch,
+                          Progress(store, job_id, attempt))
+        if cells:
+            # from here the tiles keep the job's heartbeat, not this process
+            if not store.hand_to_tiles(job_id, attempt):
+                raise Superseded("the job was queued again")
+            store.set_progress(job_id, 5, f"{len(cells)} tiles queued")
+            dispatch(job_id, cells)
+            return None
     stats = process_file(
         source,
         result,
@@ -206,7 +227,7 @@ def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
     return stored
 
 
-def _disk_full_message(exc: BaseException) -> str | None:
+def disk_full_message(exc: BaseException) -> str | None:
     """The failure message of a job whose files did not fit on the disk (None otherwise)."""
     if not is_disk_full(exc):
         return None
@@ -215,27 +236,29 @@ def _disk_full_message(exc: BaseException) -> str | None:
         "later"
 
 
-def _fail(store: Store, storage: Storage, job_id: str, message: str,
-          attempt: int) -> JobStatus | None:
-    """Record the failure of delivery ``attempt``, unless the job is no longer its own."""
+def fail_job(store: Store, storage: Storage, job_id: str, message: str,
+             attempt: int | None = None) -> JobStatus | None:
+    """Record the job as failed with ``message`` and remove any part of its result. With
+    ``attempt``, only delivery ``attempt`` may: not when the job is no longer its own."""
     prefix = layout.job_prefix(job_id)
     job = store.get_job(job_id)
     if job is not None and job.status is JobStatus.dismissed:
         # the error came from the dismissal itself (e.g. the API removed the objects)
-        _quietly(storage.delete_prefix, prefix)
+        quietly(storage.delete_prefix, prefix)
         store.annotate(job_id, DISMISSED_WHILE_RUNNING)
         return JobStatus.dismissed
-    if job is None or job.status is not JobStatus.running or job.attempts != attempt:
+    if job is None or job.status is not JobStatus.running or (
+            attempt is not None and job.attempts != attempt):
         return None  # queued again or started by another delivery since: its outcome counts
     for name in layout.RESULT_NAMES:
-        _quietly(storage.delete, prefix + name)
+        quietly(storage.delete, prefix + name)
     # the storage may be what failed: the job is recorded as failed all the same
-    stored = _quietly(storage.prefix_bytes, prefix)
+    stored = quietly(storage.prefix_bytes, prefix)
     store.transition(job_id, JobStatus.failed, message, stored_bytes=stored)
     return JobStatus.failed
 
 
-def _quietly(action: Callable[[str], T], key: str) -> T | None:
+def quietly(action: Callable[[str], T], key: str) -> T | None:
     """Clean-up that must not hide the outcome being recorded: storage errors are logged."""
     try:
         return action(key)

@@ -7,6 +7,14 @@ exists, belonged to a worker that was killed with its pool (SIGKILL, out of memo
 host). Such a job is queued again, or failed once it has been started ``MAX_ATTEMPTS`` times;
 without this it would wait for the broker's visibility timeout (hours).
 
+A job cut into tiles (``worker_host`` :data:`~lidar_outliers.jobs.store.TILED_HOST`) is held by
+no process: its tiles, its merge and the chord's error callback end it, and a tile whose worker
+died is delivered again by the broker. Its tile tasks beat for it at their start and end and
+the workers running or holding them beat for it in between, but tiles may wait in the queue
+without anyone beating, so such a job is only taken back once nothing beat for it for the
+broker's ``VISIBILITY_TIMEOUT`` plus ``STALE_JOB_SECONDS`` (its tile messages were all lost):
+it then runs again from the start instead of being left running for ever.
+
 Every worker sweeps; :meth:`~lidar_outliers.jobs.store.Store.reclaim` changes a job only as it
 was read, so two sweeps never queue one job twice. The new message carries the job's re-queue
 count, and a delivery of an older message (Redis re-delivers the dead worker's one after the
@@ -25,7 +33,7 @@ import psutil
 from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import Storage, StorageError
-from lidar_outliers.jobs.store import Job, JobStatus, Store, parse_time
+from lidar_outliers.jobs.store import TILED_HOST, Job, JobStatus, Store, parse_time
 
 log = logging.getLogger(__name__)
 
@@ -38,10 +46,16 @@ def died_message(attempts: int) -> str:
             "the job is not retried")
 
 
-def abandoned(job: Job, *, now: datetime, stale_after: float, host: str) -> str | None:
-    """Why the worker of a running job is taken for gone, or None while it may still run it."""
+def abandoned(job: Job, *, now: datetime, stale_after: float, host: str,
+              tiled_after: float | None = None) -> str | None:
+    """Why the worker of a running job is taken for gone, or None while it may still run it.
+    ``tiled_after``: the staleness of a job whose tiles run on the workers (default
+    ``stale_after``)."""
     last = parse_time(job.heartbeat or job.started or job.created)
     age = (now - last).total_seconds()
+    if job.worker_host == TILED_HOST:
+        limit = stale_after if tiled_after is None else tiled_after
+        return f"its tiles sent no heartbeat for {age:.0f} s" if age > limit else None
     if age > stale_after:
         return f"its worker sent no heartbeat for {age:.0f} s"
     if job.worker_host == host and job.worker_pid and not psutil.pid_exists(job.worker_pid):
@@ -68,7 +82,8 @@ class Janitor:
         changed = []
         for job in self.store.running_jobs():
             reason = abandoned(job, now=now, stale_after=self.settings.stale_job_seconds,
-                               host=self.host)
+                               host=self.host, tiled_after=self.settings.visibility_timeout
+                               + self.settings.stale_job_seconds)
             if reason is None:
                 continue
             if job.attempts >= self.settings.max_attempts:

@@ -41,6 +41,15 @@ def trajectory_key(job_id: str) -> str:
     return job_prefix(job_id) + "trajectory.txt"
 
 
+def tiles_prefix(job_id: str) -> str:
+    """The tile files and the tiles' partial results of a job run over several workers."""
+    return job_prefix(job_id) + "tiles/"
+
+
+def tile_key(job_id: str, name: str) -> str:
+    return tiles_prefix(job_id) + name
+
+
 def derived_key(job_id: str, keep: str, laz: bool) -> str:
     """A download made from the result on first request (``?keep=``, ``?format=``)."""
     return job_prefix(job_id) + f"cloud-{keep}.{'laz' if laz else 'las'}"

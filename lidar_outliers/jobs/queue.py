@@ -13,6 +13,11 @@ Settings that make a job survive a dying worker:
   the workers' heartbeats and sweeps (:mod:`lidar_outliers.jobs.janitor`) queue it again;
 - priorities 0-9 (0 first) let the API queue a user's n-th active job behind other users' first
   jobs (fairness).
+
+The tiles of a large job are a chord (a group of tile tasks, then the merge), which needs a
+result backend: Redis again. Its results live as long as the retention of jobs, so a chord
+whose tiles take long (many tiles, few workers) still completes; only the tile tasks keep a
+result.
 """
 
 from __future__ import annotations
@@ -21,8 +26,15 @@ from typing import Any
 
 from lidar_outliers.jobs.settings import Settings
 
-#: The one task: run a job's pipeline over its input (argument: the job id).
+#: Run a job's pipeline over its input (argument: the job id); a large job is cut into tiles.
 RUN_JOB_TASK = "lidar_outliers.run_job"
+#: One tile of a job cut into tiles (job id, cell), the merge of its tiles (job id), and the
+#: error callback that fails the job when a tile or the merge failed.
+RUN_TILE_TASK = "lidar_outliers.run_tile"
+MERGE_TILES_TASK = "lidar_outliers.merge_tiles"
+#: Fixes a parameter estimated from the whole cloud (job id, stage) from the tiles' values.
+PIN_TILES_TASK = "lidar_outliers.pin_tiles"
+TILES_FAILED_TASK = "lidar_outliers.tiles_failed"
 PRIORITY_STEPS = list(range(10))
 #: Priority of a user's n-th active job (capped at the lowest priority).
 LOWEST_PRIORITY = PRIORITY_STEPS[-1]
@@ -36,6 +48,8 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         task_reject_on_worker_lost=True,
         worker_prefetch_multiplier=1,
         task_ignore_result=True,
+        result_backend=settings.redis_url,
+        result_expires=int(settings.retention_days * 86400) + settings.visibility_timeout,
         task_serializer="json",
         accept_content=["json"],
         task_time_limit=settings.task_time_limit,

@@ -85,6 +85,12 @@ class Settings(BaseSettings):
         "worker process on this host is gone) is re-queued, or failed after MAX_ATTEMPTS."
     )
     worker_concurrency: int = Field(1, ge=1, description="Worker processes `serve` starts.")
+    tile_job_points: int = Field(
+        5_000_000, ge=1, description="A job of more points is cut into tiles that every "
+        "worker takes part in (when its pipeline runs in tiles).")
+    tile_size: float = Field(
+        0.0, ge=0, description="Edge in metres of the tiles of such a job; 0 = chosen from the "
+        "file's density (about 250 k points a tile).")
     api_host: str = Field("127.0.0.1", description="Address `serve` binds the API to.")
     api_port: int = Field(8000, ge=1, le=65535, description="Port `serve` binds the API to.")
     retry_after_seconds: int = Field(30, ge=1, description="Retry-After sent with 429.")

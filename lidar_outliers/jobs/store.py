@@ -96,6 +96,11 @@ TRANSITIONS: dict[JobStatus, set[JobStatus]] = {
 }
 
 
+#: The ``worker_host`` of a running job whose tiles run on the workers (no one process holds
+#: it); the tile tasks beat for it with this host (:meth:`Store.beat`).
+TILED_HOST = "(tiles)"
+
+
 def now() -> str:
     """UTC time as ISO 8601 with a Z, as OGC API - Processes writes it."""
     return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
@@ -667,6 +672,18 @@ class Store:
                                       jobs.c.worker_host == host)
                 .values(heartbeat=now())
             ).rowcount
+
+    def hand_to_tiles(self, job_id: str, attempt: int) -> bool:
+        """Record that delivery ``attempt`` of a running job handed its tiles to the queue: no
+        one process holds the job now (``worker_host`` :data:`TILED_HOST`, no ``worker_pid``);
+        its tile tasks keep its heartbeat. False when the job is no longer that delivery's."""
+        with self._transaction() as db:
+            return bool(db.execute(
+                sa.update(jobs).where(jobs.c.id == job_id,
+                                      jobs.c.status == JobStatus.running.value,
+                                      jobs.c.attempts == attempt)
+                .values(worker_pid=None, worker_host=TILED_HOST, heartbeat=now())
+            ).rowcount)
 
     def running_jobs(self) -> list[Job]:
         with self._read() as db:

@@ -18,7 +18,7 @@ from lidar_outliers.jobs.execute import execute_job
 from lidar_outliers.jobs.janitor import Janitor
 from lidar_outliers.jobs.settings import Settings
 from lidar_outliers.jobs.storage import open_storage
-from lidar_outliers.jobs.store import Job, JobStatus, Store
+from lidar_outliers.jobs.store import TILED_HOST, Job, JobStatus, Store
 
 HOST = socket.gethostname()
 
@@ -144,3 +144,25 @@ def test_an_older_delivery_neither_starts_nor_reports(settings: Settings, store:
     assert store.set_progress(job.id, 50, "new", attempt=2) is JobStatus.running
     assert store.get_job(job.id).message == "new"
     assert store.transition(job.id, JobStatus.running, requeues=0) is None
+
+
+def test_a_tiled_job_is_left_to_its_tiles_until_the_broker_would_have_given_them_back(
+    settings: Settings, store: Store
+) -> None:
+    """No process holds a job while its tiles run (its splitting process may be gone): the
+    tiles beat for it, and a sweep takes it back only once nothing beat for longer than the
+    broker's visibility timeout (every message of its tiles lost)."""
+    job = running_job(store, pid=gone_pid())
+    assert store.hand_to_tiles(job.id, job.attempts)
+    assert not store.hand_to_tiles(job.id, job.attempts + 1)  # another delivery's: refused
+    queue = Queue()
+    quiet = settings.visibility_timeout  # far beyond STALE_JOB_SECONDS
+    assert janitor(settings, store, queue).sweep(now=later(quiet)) == []
+    assert store.beat([job.id], TILED_HOST) == 1  # a tile task or its worker
+    beaten = store.get_job(job.id)
+    assert beaten is not None and (beaten.worker_host, beaten.worker_pid) == (TILED_HOST, None)
+    assert janitor(settings, store, queue).sweep(now=later(quiet)) == []
+    [taken] = janitor(settings, store, queue).sweep(
+        now=later(settings.visibility_timeout + settings.stale_job_seconds + 5))
+    assert (taken.status, taken.requeues) == (JobStatus.accepted, 1)
+    assert "tiles sent no heartbeat" in taken.message and queue.sent == [(job.id, 1)]

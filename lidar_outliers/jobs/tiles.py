@@ -1,0 +1,297 @@
+"""One job over many workers: cut into tiles, the tiles run anywhere, the results merged.
+
+The worker that gets a large job (more points than ``TILE_JOB_POINTS``, a pipeline that runs
+in tiles, :mod:`lidar_outliers.tiling`) cuts its input into tile files and puts them, with a
+manifest, into the job's storage (``jobs/<id>/tiles/``), then hands the tiles to the queue
+(:func:`split_job`). Any worker runs a tile (:func:`run_job_tile`): it fetches the manifest and
+the cells within the tile's halo, runs the pipeline and puts the tile's result back under a
+name of its own, so a re-run overwrites it. Once every tile is done one worker merges the
+results in the input's point order, writes the result and the statistics and ends the job
+(:func:`merge_job`); a tile that fails ends the job as failed with its message
+(:func:`fail_tiled_job`) and nothing of the result is left. The Celery side (a chord of tile
+tasks and a merge task) is in ``worker/tasks.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+from typing import Any
+
+from lidar_outliers import lasio
+from lidar_outliers.errors import CancelledError, LidarOutliersError
+from lidar_outliers.jobs import layout
+from lidar_outliers.jobs.callbacks import FAILED, SUCCESS
+from lidar_outliers.jobs.execute import (
+    Progress,
+    Superseded,
+    disk_full_message,
+    fail_job,
+    notify,
+    quietly,
+)
+from lidar_outliers.jobs.settings import Settings, get_settings
+from lidar_outliers.jobs.storage import ObjectMissing, Storage
+from lidar_outliers.jobs.store import JobStatus, Store
+from lidar_outliers.params import PipelineParams
+from lidar_outliers.pipeline import check_noise_class, resolve_stages
+from lidar_outliers.tiling import (
+    MANIFEST,
+    TileError,
+    TileSet,
+    auto_tile_size,
+    cell_name,
+    load_result,
+    merge,
+    noise_truth,
+    partition,
+    pending_estimate,
+    pin_stage,
+    result_name,
+    run_tile,
+    save_result,
+    stage_halos,
+    tiled_statistics,
+)
+
+log = logging.getLogger(__name__)
+Cell = tuple[int, int]
+
+
+def split_job(
+    settings: Settings, store: Store, storage: Storage, job_id: str, source: Path,
+    scratch: Path, progress: Progress,
+) -> list[Cell] | None:
+    """Cut the job's input (a local copy at ``source``) into tiles in the job's storage and
+    return the cells; None when the job runs whole on this worker (small, or a stage that
+    needs the whole cloud)."""
+    job = store.get_job(job_id)
+    assert job is not None
+    params = PipelineParams.model_validate(job.inputs)
+    facts = lasio.inspect_las(source)
+    if facts.points <= settings.tile_job_points or "trajectory" in job.facts:
+        return None
+    if params.pipeline is not None and isinstance(stage_halos(params.pipeline), str):
+        return None
+    check_noise_class(params, facts.point_format)
+    evidence = None
+    if params.pipeline is None and params.profile == "auto":
+        from lidar_outliers.profiles import file_evidence
+
+        evidence = file_evidence(source, facts.to_dict())
+    size = settings.tile_size or auto_tile_size(facts)
+    tiles = partition(source, scratch / "cells", size, progress=progress,
+                      progress_span=(0.0, 0.05))
+    stages, note = resolve_stages(params, tiles.gps_probe(), facts.to_dict(), evidence)
+    if isinstance(stage_halos(stages), str):
+        return None
+    for cell in tiles.cells:
+        storage.put_file(layout.tile_key(job_id, cell_name(cell)), tiles.cell_path(cell),
+                         move=True)
+    dumped = [s.model_dump(mode="json") for s in stages]
+    manifest = {**tiles.to_json(), "stages": dumped, "given": dumped, "estimated": {},
+                "note": note, "facts": facts.to_dict()}
+    path = scratch / MANIFEST
+    path.write_text(json.dumps(manifest))
+    storage.put_file(layout.tile_key(job_id, MANIFEST), path, move=True)
+    return sorted(tiles.cells)
+
+
+def _manifest(storage: Storage, job_id: str, folder: Path) -> tuple[TileSet, dict[str, Any]]:
+    """The job's tile set (cells fetched from the storage when a tile needs them)."""
+    try:
+        doc = json.loads(storage.read_bytes(layout.tile_key(job_id, MANIFEST)))
+    except ObjectMissing:
+        raise TileError("the job's tile manifest is missing") from None
+    folder.mkdir(parents=True, exist_ok=True)
+    tiles = TileSet.from_json(folder, doc)
+
+    def fetch(cell: Cell, path: Path) -> None:
+        try:
+            storage.get_file(layout.tile_key(job_id, cell_name(cell)), path)
+        except ObjectMissing:
+            raise TileError(f"tile file {cell_name(cell)} is missing") from None
+
+    tiles.fetch = fetch
+    return tiles, doc
+
+
+def _stages(params: PipelineParams, doc: dict[str, Any]) -> tuple[PipelineParams, list]:
+    """The stages the splitting worker resolved (the profile is chosen once per job)."""
+    resolved = params.model_copy(update={"pipeline": None})
+    stages = PipelineParams.model_validate({"pipeline": doc["stages"]}).pipeline
+    assert stages is not None
+    return resolved, list(stages)
+
+
+def values_name(stage: int, cell: Cell) -> str:
+    return f"values_{stage}_{cell[0]}_{cell[1]}.npz"
+
+
+def pending_phase(storage: Storage, job_id: str) -> tuple[int | None, bool]:
+    """The stage whose estimate the job's tiles must gather first (None: the tiles run), and
+    whether a round of estimates came before."""
+    doc = json.loads(storage.read_bytes(layout.tile_key(job_id, MANIFEST)))
+    return pending_estimate(_stages(PipelineParams(), doc)[1]), bool(doc.get("estimated"))
+
+
+def job_cells(storage: Storage, job_id: str) -> list[Cell]:
+    doc = json.loads(storage.read_bytes(layout.tile_key(job_id, MANIFEST)))
+    return [(int(c), int(r)) for c, r, _ in doc["cells"]]
+
+
+def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: str,
+                  stage: int) -> bool:
+    """Fix stage ``stage``'s estimate from every tile's values and record it in the manifest;
+    False when the job is no longer running or the stage is fixed already (a re-run)."""
+    job = store.get_job(job_id)
+    if job is None or job.status is not JobStatus.running:
+        return False
+    scratch = layout.scratch(settings, f"pin-{job_id}")
+    try:
+        tiles, doc = _manifest(storage, job_id, scratch / "cells")
+        params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
+        if pending_estimate(stages) != stage:
+            return False
+
+        def values() -> Any:
+            for cell in sorted(tiles.cells):
+                path = scratch / values_name(stage, cell)
+                try:
+                    storage.get_file(layout.tile_key(job_id, path.name), path)
+                except ObjectMissing:
+                    raise TileError(f"tile {cell_name(cell)} has no values") from None
+                yield load_result(path)
+                path.unlink()
+
+        pinned, info = pin_stage(tiles, stages[stage], values(), scratch / "values")
+        doc["stages"][stage] = pinned.model_dump(mode="json")
+        doc["estimated"][str(stage)] = info
+        path = scratch / MANIFEST
+        path.write_text(json.dumps(doc))
+        storage.put_file(layout.tile_key(job_id, MANIFEST), path, move=True)
+        for cell in tiles.cells:
+            quietly(storage.delete, layout.tile_key(job_id, values_name(stage, cell)))
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return True
+
+
+def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str,
+                 cell: Cell, values_of: int | None = None) -> bool:
+    """Run one tile of a running job and put its result (replacing an earlier run's); with
+    ``values_of``, the values that stage estimates a parameter from instead.
+
+    Returns False when the job is no longer running (dismissed, or failed by another tile).
+    Raises what the tile raised; the caller fails the job with it.
+    """
+    job = store.get_job(job_id)
+    if job is None or job.status is not JobStatus.running:
+        return False
+    scratch = layout.scratch(settings, f"tile-{job_id}")
+    try:
+        tiles, doc = _manifest(storage, job_id, scratch / "cells")
+        params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
+        if tuple(cell) not in tiles.cells:
+            raise TileError(f"the job has no tile {cell_name(tuple(cell))}")
+        result = run_tile(tiles, tuple(cell), params, stages, values_of=values_of)
+        path = scratch / (result_name(tuple(cell)) if values_of is None
+                          else values_name(values_of, tuple(cell)))
+        save_result(path, result)
+        storage.put_file(layout.tile_key(job_id, path.name), path, move=True)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return True
+
+
+def merge_job(settings: Settings, store: Store, storage: Storage, job_id: str) -> JobStatus | None:
+    """Merge every tile's result in the input's order, store the result and the statistics,
+    end the job; the tile files are removed whatever happens."""
+    job = store.get_job(job_id)
+    if job is None or job.status is not JobStatus.running:
+        quietly(storage.delete_prefix, layout.tiles_prefix(job_id))
+        return None
+    scratch = layout.scratch(settings, f"merge-{job_id}")
+    progress = Progress(store, job_id)
+    try:
+        stored = _merge(storage, job_id, job, scratch, progress)
+    except Superseded:
+        return None  # queued again: the job's files are the new delivery's
+    except CancelledError:
+        quietly(storage.delete_prefix, layout.job_prefix(job_id))
+        return JobStatus.dismissed
+    except LidarOutliersError as exc:
+        return fail_tiled_job(store, storage, job_id, disk_full_message(exc) or str(exc),
+                              settings)
+    except Exception as exc:
+        log.exception("merging the tiles of job %s failed", job_id)
+        return fail_tiled_job(store, storage, job_id, disk_full_message(exc)
+                              or f"internal error: {type(exc).__name__}: {exc}", settings)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    quietly(storage.delete_prefix, layout.tiles_prefix(job_id))
+    done = store.transition(job_id, JobStatus.successful, "done",
+                            stored_bytes=quietly(storage.prefix_bytes,
+                                                 layout.job_prefix(job_id)) or stored)
+    if done is None:
+        quietly(storage.delete_prefix, layout.job_prefix(job_id))
+        return JobStatus.dismissed
+    notify(settings, done, SUCCESS)
+    return JobStatus.successful
+
+
+def _merge(storage: Storage, job_id: str, job: Any, scratch: Path, progress: Progress) -> int:
+    from lidar_outliers.atomic import write_json_atomic
+    from lidar_outliers.process import finish_statistics
+
+    tiles, doc = _manifest(storage, job_id, scratch / "cells")
+    params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
+    progress(0.9, f"merging {len(tiles.cells)} tiles")
+
+    def results() -> Any:
+        for cell in sorted(tiles.cells):
+            path = scratch / result_name(cell)
+            try:
+                storage.get_file(layout.tile_key(job_id, path.name), path)
+            except ObjectMissing:
+                raise TileError(f"tile {cell_name(cell)} has no result") from None
+            yield load_result(path)
+            path.unlink()
+
+    merged = merge(tiles, results(), stages, params, scratch / "merged")
+    truth = noise_truth(tiles, params.reference_classes, scratch / "merged")
+    suffix = ".laz" if job.laz else ".las"
+    source, out = scratch / f"input{suffix}", scratch / f"result{suffix}"
+    storage.get_file(layout.input_key(job_id, job.laz), source)
+    lasio.write_result(source, out, flags=merged.flags, scores=merged.scores,
+                       classification=merged.classification, laz=job.laz,
+                       progress=progress, progress_span=(0.9, 0.99))
+    facts = dict(doc["facts"], name=job.facts.get("name", doc["facts"].get("name")))
+    given = list(PipelineParams.model_validate({"pipeline": doc["given"]}).pipeline or [])
+    estimated = {int(k): v for k, v in doc.get("estimated", {}).items()}
+    stats = tiled_statistics(merged, tiles, stages, params, facts, doc["note"], truth,
+                             estimated, given)
+    stats["mode"] = "tiled over workers"
+    del merged, truth
+    stats = finish_statistics(stats, out, job.laz, None, None)
+    statistics = scratch / "statistics.json"
+    write_json_atomic(statistics, stats)
+    stored = storage.put_file(layout.result_key(job_id, job.laz), out, move=True)
+    stored += storage.put_file(layout.statistics_key(job_id), statistics, move=True)
+    return stored
+
+
+def fail_tiled_job(store: Store, storage: Storage, job_id: str, message: str,
+                   settings: Settings | None = None) -> JobStatus | None:
+    """End a tiled job as failed with ``message`` (once: later calls change nothing); its
+    tiles and any part of a result are removed, and its subscriber hears of the failure."""
+    quietly(storage.delete_prefix, layout.tiles_prefix(job_id))
+    if store.status(job_id) is not JobStatus.running:
+        return None
+    status = fail_job(store, storage, job_id, message)
+    job = store.get_job(job_id)
+    if status is JobStatus.failed and job is not None:
+        notify(settings or get_settings(), job, FAILED)
+    return status

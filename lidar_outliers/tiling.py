@@ -1,0 +1,590 @@
+"""A pipeline over a cloud of any size, tile by tile, in memory set by the tile size.
+
+1. :func:`partition` streams the file once into one file per square XY cell of ``tile_size``
+   metres (every point with its index in the file), on disk.
+2. :func:`run_tile` loads one cell (the core) and the points of the neighbouring cells within
+   the pipeline's halo, runs the stages and keeps the core's flags, scores and classes. The halo
+   is the sum of the stages' declared halos (:class:`~lidar_outliers.detectors.base.Detector`):
+   stage i's result is exact out to the halos of the stages after it, which is what those
+   stages read. Where a detector's reach depends on the data (k nearest neighbours, radii that
+   grow with range) the tile is run again with a wider halo until every point reached no
+   further than it, so a tile gives the whole cloud's result for its points.
+3. :func:`merge` writes the tiles' results into arrays on disk in the input's point order and
+   the output file from them.
+
+The tiles are independent: :func:`process_tiled` runs them one after another here, the job
+service spreads them over its workers (:mod:`lidar_outliers.jobs.tiles`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import laspy
+import numpy as np
+
+from lidar_outliers import lasio
+from lidar_outliers.atomic import write_json_atomic
+from lidar_outliers.cloud import Cloud
+from lidar_outliers.detectors import StageModel, get_detector
+from lidar_outliers.errors import LidarOutliersError
+from lidar_outliers.output import FLAGS_DTYPE
+from lidar_outliers.params import FLAG_BITS, PipelineParams
+from lidar_outliers.pipeline import (
+    GROUND_CLASS,
+    Progress,
+    jsonable,
+    noise_reference,
+    overall_statistics,
+    pipeline_statistics,
+    run_pipeline,
+    stage_entry,
+)
+
+#: One point in a tile file.
+POINT_DTYPE = np.dtype([
+    ("xyz", "<f8", (3,)), ("gps_time", "<f8"), ("point_source_id", "<u2"),
+    ("classification", "u1"), ("intensity", "<u2"), ("index", "<i8"),
+])
+#: Points per core tile the automatic tile size aims at at the mean density (denser parts of a
+#: file get more; a 617 k-point tile of the default pipeline peaked at 2.1 GB).
+TILE_POINTS = 250_000
+#: Files up to this many points run whole in memory unless a tile size is given: the default
+#: pipeline holds about 680 bytes a point, so a whole run stays near 2 GB (3 M x 680 B); larger
+#: files run in tiles, which cost an extra pass over the file.
+WHOLE_CLOUD_POINTS = 3_000_000
+MANIFEST = "tiles.json"
+#: A tile whose points reach further than its halo is run again with the halo times this.
+HALO_GROWTH = 2.0
+
+
+class TileError(LidarOutliersError):
+    """A tile file or a tile's result is missing or unreadable."""
+
+
+@dataclass
+class TileSet:
+    """The cells of a partitioned file: where their files are and what the tiles share."""
+
+    folder: Path
+    tile_size: float
+    anchor: np.ndarray  # (2,) XY lower-left corner of the file, local frame
+    origin: np.ndarray  # (3,) the local frame's origin in file coordinates
+    points: int
+    has_gps_time: bool
+    cells: dict[tuple[int, int], int]  # (column, row) -> points
+    gps_range: tuple[float, float] | None = None  # finite gps_time min, max (None: no finite)
+    #: Brings a cell's file into ``folder`` when it is not there (a worker that got the
+    #: manifest only fetches the cells its tile needs from the job's storage).
+    fetch: Callable[[tuple[int, int], Path], None] | None = None
+
+    def cell_path(self, cell: tuple[int, int]) -> Path:
+        return self.folder / cell_name(cell)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"tile_size": self.tile_size, "anchor": self.anchor.tolist(),
+                "origin": self.origin.tolist(), "points": self.points,
+                "has_gps_time": self.has_gps_time,
+                "gps_range": list(self.gps_range) if self.gps_range else None,
+                "cells": [[c, r, n] for (c, r), n in sorted(self.cells.items())]}
+
+    @classmethod
+    def from_json(cls, folder: Path, doc: dict[str, Any]) -> TileSet:
+        return cls(Path(folder), float(doc["tile_size"]), np.asarray(doc["anchor"]),
+                   np.asarray(doc["origin"]), int(doc["points"]), bool(doc["has_gps_time"]),
+                   {(int(c), int(r)): int(n) for c, r, n in doc["cells"]},
+                   tuple(doc["gps_range"]) if doc.get("gps_range") else None)
+
+    def gps_probe(self) -> np.ndarray | None:
+        """Times that :func:`~lidar_outliers.pipeline.usable_gps_time` judges as it would the
+        file's (none, all NaN, all the same, or usable)."""
+        if not self.has_gps_time:
+            return None
+        if self.gps_range is None:
+            return np.full(max(self.points, 1), np.nan)
+        return np.asarray(self.gps_range, dtype=np.float64)
+
+    @classmethod
+    def load(cls, folder: Path) -> TileSet:
+        return cls.from_json(folder, json.loads((Path(folder) / MANIFEST).read_text()))
+
+
+def cell_name(cell: tuple[int, int]) -> str:
+    return f"cell_{cell[0]}_{cell[1]}.bin"
+
+
+def result_name(cell: tuple[int, int]) -> str:
+    return f"result_{cell[0]}_{cell[1]}.npz"
+
+
+def cells_of(xy: np.ndarray, anchor: np.ndarray, size: float) -> np.ndarray:
+    """(n, 2) int64 column and row of each point's cell (the one formula used everywhere)."""
+    return np.floor((xy - anchor) / size).astype(np.int64)
+
+
+def auto_tile_size(facts: lasio.LasFacts) -> float:
+    """A tile edge giving about :data:`TILE_POINTS` points a tile at the file's mean density
+    over its bounding box (at least 5 m)."""
+    bounds = facts.bounds
+    if not bounds or facts.points == 0:
+        return 100.0
+    dx = float(bounds["max"][0] - bounds["min"][0])
+    dy = float(bounds["max"][1] - bounds["min"][1])
+    area = max(dx * dy, max(dx, dy, 1.0))  # a straight drive along one axis still has an area
+    return max(5.0, math.sqrt(area * TILE_POINTS / facts.points))
+
+
+def partition(
+    in_path: Path, folder: Path, tile_size: float, *,
+    chunk_points: int = lasio.DEFAULT_CHUNK_POINTS, progress: Progress | None = None,
+    progress_span: tuple[float, float] = (0.0, 1.0),
+) -> TileSet:
+    """Stream ``in_path`` into one file per XY cell of ``tile_size`` metres under ``folder``.
+
+    The cells start at the header's lower-left corner; each file holds its points as
+    :data:`POINT_DTYPE` records in file order. Memory: one chunk.
+    """
+    if not tile_size > 0:
+        raise ValueError(f"tile_size must be > 0, got {tile_size}")
+    folder.mkdir(parents=True, exist_ok=True)
+    with lasio._laspy_errors(in_path.name), laspy.open(in_path) as reader:
+        header = reader.header
+    grid, origin = lasio.grid_origin(header)
+    scales = np.asarray(header.scales)
+    n = int(header.point_count)
+    has_gps = "gps_time" in set(header.point_format.dimension_names)
+    anchor = lasio.local_anchor(header, grid)
+    cells: dict[tuple[int, int], int] = {}
+    t_lo, t_hi = math.inf, -math.inf
+    start = 0
+    lo, hi = progress_span
+    for chunk in lasio.iter_chunks(in_path, chunk_points):
+        stop = start + len(chunk)
+        rec = np.empty(stop - start, dtype=POINT_DTYPE)
+        lasio.local_xyz(chunk, grid, scales, out=rec["xyz"])
+        rec["gps_time"] = chunk.array["gps_time"] if has_gps else np.nan
+        rec["point_source_id"] = chunk.array["point_source_id"]
+        rec["classification"] = np.asarray(chunk.classification)
+        rec["intensity"] = chunk.array["intensity"]
+        rec["index"] = np.arange(start, stop, dtype=np.int64)
+        finite = rec["gps_time"][np.isfinite(rec["gps_time"])]
+        if finite.size:
+            t_lo, t_hi = min(t_lo, float(finite.min())), max(t_hi, float(finite.max()))
+        _append_by_cell(rec, cells_of(rec["xyz"][:, :2], anchor, tile_size), folder, cells)
+        start = stop
+        if progress is not None:
+            progress(lo + (hi - lo) * stop / max(n, 1), f"cutting tiles: {stop:,} of {n:,} points")
+    gps_range = (t_lo, t_hi) if t_lo <= t_hi else None
+    tiles = TileSet(folder, float(tile_size), anchor, origin, n, has_gps, cells, gps_range)
+    write_json_atomic(folder / MANIFEST, tiles.to_json())
+    return tiles
+
+
+def _append_by_cell(rec: np.ndarray, ij: np.ndarray, folder: Path,
+                    cells: dict[tuple[int, int], int]) -> None:
+    order = np.lexsort((ij[:, 1], ij[:, 0]))
+    ij, rec = ij[order], rec[order]
+    new = np.r_[True, np.any(ij[1:] != ij[:-1], axis=1)] if len(ij) else np.zeros(0, bool)
+    starts = np.r_[np.flatnonzero(new), len(ij)]
+    for a, b in zip(starts[:-1], starts[1:], strict=True):
+        cell = (int(ij[a, 0]), int(ij[a, 1]))
+        with open(folder / cell_name(cell), "ab") as fh:
+            rec[a:b].tofile(fh)
+        cells[cell] = cells.get(cell, 0) + int(b - a)
+
+
+# --------------------------------------------------------------------------- one tile
+
+
+def stage_halos(stages: Iterable[StageModel], trajectory: bool = False) -> list[float] | str:
+    """Each stage's declared halo, or the reason the pipeline cannot run in tiles."""
+    halos = []
+    for stage in stages:
+        spec = get_detector(stage.detector)
+        if trajectory and spec.uses_trajectory:
+            return (f"{stage.detector} with a trajectory follows beams across the whole cloud "
+                    "(free-space evidence)")
+        halo = spec.halo(stage.parameters())
+        if halo is None:
+            return (f"{stage.detector}: {spec.whole_cloud}" if spec.whole_cloud else
+                    f"{stage.detector} with these parameters depends on the whole cloud")
+        halos.append(float(halo))
+    return halos
+
+
+def read_cell(tiles: TileSet, cell: tuple[int, int]) -> np.ndarray:
+    """The records of one cell (none for a cell without points); TileError when unreadable."""
+    if cell not in tiles.cells:
+        return np.zeros(0, dtype=POINT_DTYPE)
+    path = tiles.cell_path(cell)
+    if tiles.fetch is not None and not path.exists():
+        tiles.fetch(cell, path)
+    try:
+        size = path.stat().st_size
+        if size != tiles.cells[cell] * POINT_DTYPE.itemsize:
+            raise TileError(f"tile file {path.name} holds {size} bytes, expected "
+                            f"{tiles.cells[cell]} points")
+        return np.fromfile(path, dtype=POINT_DTYPE)
+    except OSError as exc:
+        raise TileError(f"tile file {path.name} cannot be read: {exc.strerror}") from None
+
+
+def load_region(tiles: TileSet, cell: tuple[int, int], halo: float) -> tuple[np.ndarray, bool]:
+    """The records within ``halo`` metres (XY) of ``cell``, and whether that is every cell."""
+    ring = math.ceil(halo / tiles.tile_size) if math.isfinite(halo) else None
+    if ring is None:
+        wanted = list(tiles.cells)
+    else:
+        wanted = [c for c in tiles.cells
+                  if abs(c[0] - cell[0]) <= ring and abs(c[1] - cell[1]) <= ring]
+    parts = [read_cell(tiles, c) for c in sorted(wanted)]
+    rec = np.concatenate(parts) if parts else np.zeros(0, dtype=POINT_DTYPE)
+    if ring is not None:
+        d = outside_distance(rec["xyz"][:, :2], tiles, cell)
+        rec = rec[d <= halo]
+    rec = rec[np.argsort(rec["index"], kind="stable")]  # file order, as the whole run sees it
+    return rec, len(rec) == tiles.points
+
+
+def outside_distance(xy: np.ndarray, tiles: TileSet, cell: tuple[int, int]) -> np.ndarray:
+    """(n,) Chebyshev XY distance from each point to the square of ``cell`` (0 inside)."""
+    lo = tiles.anchor + np.asarray(cell, dtype=np.float64) * tiles.tile_size
+    hi = lo + tiles.tile_size
+    return np.max(np.maximum(np.maximum(lo - xy, xy - hi), 0.0), axis=1)
+
+
+def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = None) -> Cloud:
+    return Cloud(
+        xyz=np.ascontiguousarray(rec["xyz"]), origin=tiles.origin,
+        gps_time=np.ascontiguousarray(rec["gps_time"]) if tiles.has_gps_time else None,
+        point_source_id=np.ascontiguousarray(rec["point_source_id"]),
+        classification=np.ascontiguousarray(rec["classification"]),
+        intensity=np.ascontiguousarray(rec["intensity"]), trajectory=trajectory,
+        anchor=tiles.anchor,
+    )
+
+
+def run_tile(
+    tiles: TileSet, cell: tuple[int, int], params: PipelineParams, stages: list[StageModel],
+    trajectory: np.ndarray | None = None, values_of: int | None = None,
+) -> dict[str, Any]:
+    """The pipeline's result for the points of ``cell``: the whole cloud's result for them.
+
+    Returns ``index`` (the points' indices in the file), ``flags``, ``score_<name>`` per outlier
+    stage, ``classification`` (with ``classify``), ``halo`` (metres used) and per stage its
+    detector ``info`` and critical value (``stages``, JSON). ``trajectory``: (m, 4) in file
+    coordinates.
+
+    ``values_of=i``: instead, the values stage i estimates a parameter from
+    (:class:`~lidar_outliers.detectors.base.Estimate`) for the points of the cell: ``index``
+    and ``values`` (NaN where none, and for points earlier stages flagged).
+    """
+    local_traj = None if trajectory is None else trajectory - np.r_[0.0, tiles.origin]
+    halos = stage_halos(stages, trajectory is not None)
+    if isinstance(halos, str):
+        raise LidarOutliersError(f"the pipeline cannot run in tiles: {halos}")
+    if values_of is not None:
+        stages, halos = stages[:values_of + 1], halos[:values_of + 1]
+    run = stages if values_of is None else stages[:-1]
+    tile_params = params.model_copy(update={"pipeline": run or None, "reference_classes": None})
+    while True:
+        total = float(sum(halos))
+        rec, everything = load_region(tiles, cell, total)
+        cloud = tile_cloud(tiles, rec, local_traj)
+        result = run_pipeline(cloud, tile_params) if run else None
+        flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
+        wider = None if everything else _reach_violations(
+            cloud, stages, halos, flags, outside_distance(cloud.xyz[:, :2], tiles, cell))
+        if wider is None:
+            break
+        halos = wider
+    core = np.all(cells_of(cloud.xyz[:, :2], tiles.anchor, tiles.tile_size) == cell, axis=1)
+    if values_of is not None:
+        return {"index": rec["index"][core], "halo": np.float64(sum(halos)),
+                "values": _stage_values(cloud, stages[-1], flags)[core]}
+    assert result is not None
+    out: dict[str, Any] = {"index": rec["index"][core], "flags": result.flags[core],
+                           "halo": np.float64(sum(halos))}
+    for name, score in result.scores.items():
+        out[f"score_{name}"] = score[core]
+    if result.classification is not None:
+        out["classification"] = result.classification[core]
+    out["stages"] = json.dumps(jsonable([
+        {"info": s.get("info"), "critical_value": s.get("critical_value")}
+        for s in result.statistics["stages"]]))
+    return out
+
+
+def _stage_values(cloud: Cloud, stage: StageModel, flags: np.ndarray) -> np.ndarray:
+    """(n,) the values a stage estimates from, on the points earlier stages left (NaN else)."""
+    estimate = get_detector(stage.detector).estimate
+    assert estimate is not None
+    out = np.full(len(cloud), np.nan)
+    index = np.flatnonzero(flags == 0)
+    if index.size:
+        sub = cloud if index.size == len(cloud) else cloud.subset(index)
+        out[index] = estimate.values(sub, stage.parameters())
+    return out
+
+
+def pending_estimate(stages: list[StageModel]) -> int | None:
+    """The first stage that still estimates a parameter from the whole cloud, if any."""
+    for i, stage in enumerate(stages):
+        estimate = get_detector(stage.detector).estimate
+        if estimate is not None and estimate.applies(stage.parameters()):
+            return i
+    return None
+
+
+def pin_stage(
+    tiles: TileSet, stage: StageModel, results: Iterable[dict[str, Any]], folder: Path,
+) -> tuple[StageModel, dict[str, Any]]:
+    """The stage with its estimate fixed from the tiles' values (gathered in file order on
+    disk), and the statistics' note on it."""
+    spec = get_detector(stage.detector)
+    assert spec.estimate is not None
+    folder.mkdir(parents=True, exist_ok=True)
+    values = np.lib.format.open_memmap(folder / f"values_{stage.detector}.npy", mode="w+",
+                                       dtype=np.float64, shape=(tiles.points,))
+    values[:] = np.nan
+    for res in results:
+        values[res["index"]] = res["values"]
+    step = 4_000_000
+    parts = [values[s:s + step] for s in range(0, tiles.points, step)]
+    pinned, info = spec.estimate.pin(stage.parameters(), parts)
+    del parts, values
+    return spec.stage(**pinned.as_dict()), info
+
+
+def _reach_violations(
+    cloud: Cloud, stages: list[StageModel], halos: list[float], flags: np.ndarray,
+    outside: np.ndarray,
+) -> list[float] | None:
+    """Wider halos when a stage's points that later stages rely on reached beyond its halo.
+
+    Stage i must be exact within the halos of the stages after it; its points there may reach
+    at most ``halos[i]`` (then everything they saw lies where the stages before are exact).
+    """
+    earlier = FLAGS_DTYPE(0)
+    wider = list(halos)
+    grew = False
+    for i, stage in enumerate(stages):
+        spec = get_detector(stage.detector)
+        stage_in = (flags & earlier) == 0
+        if spec.flag_bit is not None:
+            earlier |= FLAGS_DTYPE(spec.flag_bit)
+        if spec.reach is None:
+            continue
+        needed = outside <= sum(halos[i + 1:])
+        index = np.flatnonzero(stage_in)
+        if index.size == 0:
+            continue
+        used = spec.reach(cloud.subset(index), stage.parameters(), needed[index])[needed[index]]
+        worst = float(used.max()) if used.size else 0.0
+        if worst > halos[i]:
+            wider[i] = max(halos[i] * HALO_GROWTH, worst * 1.01) if math.isfinite(worst) else (
+                math.inf)
+            grew = True
+    return wider if grew else None
+
+
+def save_result(path: Path, result: dict[str, Any]) -> None:
+    """Write a tile's result atomically (a re-run overwrites it whole)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".part-", suffix=".npz")
+    with os.fdopen(fd, "wb") as fh:
+        np.savez(fh, **result)
+    os.replace(tmp, path)
+
+
+def load_result(path: Path) -> dict[str, Any]:
+    try:
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise TileError(f"tile result {path.name} cannot be read: {exc}") from None
+
+
+# --------------------------------------------------------------------------- merging
+
+
+@dataclass
+class Merged:
+    """The pipeline's arrays for the whole file, on disk (memory maps) in file order."""
+
+    flags: np.ndarray
+    scores: dict[str, np.ndarray]
+    classification: np.ndarray | None
+    tile_stages: list[list[dict[str, Any]]]
+    halos: list[float]
+    sizes: list[int]
+
+
+def merge(
+    tiles: TileSet, results: Iterable[dict[str, Any]], stages: list[StageModel],
+    params: PipelineParams, folder: Path,
+) -> Merged:
+    """Scatter the tiles' results into memory-mapped arrays in the input's order."""
+    n = tiles.points
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def mapped(name: str, dtype: Any, fill: float) -> np.ndarray:
+        arr = np.lib.format.open_memmap(folder / f"{name}.npy", mode="w+", dtype=dtype,
+                                        shape=(n,))
+        arr[:] = fill
+        return arr
+
+    flags = mapped("flags", FLAGS_DTYPE, 0)
+    scores = {s.detector: mapped(f"score_{s.detector}", np.float32, np.nan) for s in stages
+              if get_detector(s.detector).kind == "outlier"}
+    classes = mapped("classification", np.uint8, 0) if params.classify else None
+    seen = mapped("seen", np.bool_, False)
+    tile_stages, halos, sizes = [], [], []
+    for res in results:
+        index = res["index"]
+        flags[index] = res["flags"]
+        seen[index] = True
+        for name, arr in scores.items():
+            arr[index] = res[f"score_{name}"]
+        if classes is not None:
+            classes[index] = res["classification"]
+        tile_stages.append(json.loads(str(res["stages"])))
+        halos.append(float(res["halo"]))
+        sizes.append(int(index.size))
+    missing = n - int(np.count_nonzero(seen))
+    if missing:
+        raise TileError(f"{missing} points have no tile result")
+    return Merged(flags, scores, classes, tile_stages, halos, sizes)
+
+
+def tiled_statistics(
+    merged: Merged, tiles: TileSet, stages: list[StageModel], params: PipelineParams,
+    facts: dict[str, Any], note: dict[str, Any], truth: np.ndarray | None,
+    estimated: dict[int, dict[str, Any]] | None = None,
+    given: list[StageModel] | None = None,
+) -> dict[str, Any]:
+    """The statistics of a tiled run: counts over all points, each stage's ``info`` and critical
+    value from the largest tile. ``estimated``: per stage index, what was estimated from the
+    whole cloud; ``given``: the stages as the job gave them (before estimates were fixed)."""
+    flags = merged.flags
+    earlier = FLAGS_DTYPE(0)
+    entries = []
+    biggest = int(np.argmax(merged.sizes)) if merged.sizes else 0
+    for i, stage in enumerate(stages):
+        spec = get_detector(stage.detector)
+        stage_in = (flags & earlier) == 0
+        entry = stage_entry(given[i] if given else stage, int(np.count_nonzero(stage_in)))
+        first = merged.tile_stages[biggest][i] if merged.tile_stages else {}
+        entry["info"] = first.get("info")
+        if estimated and i in estimated and isinstance(entry["info"], dict):
+            entry["info"] = {**entry["info"], **estimated[i]}
+        if spec.kind == "outlier":
+            bit = FLAGS_DTYPE(spec.flag_bit)
+            flagged = (flags & bit) != 0
+            entry.update(points_tested=int(np.count_nonzero(~np.isnan(merged.scores[spec.name]))),
+                         points_flagged=int(np.count_nonzero(flagged)),
+                         critical_value=first.get("critical_value"))
+            earlier |= bit
+            if truth is not None:
+                from algorithms.metrics import outlier_confusion
+
+                entry["confusion"] = outlier_confusion(truth[stage_in], flagged[stage_in])
+        else:
+            cls = merged.classification
+            ground = (None if cls is None
+                      else int(np.count_nonzero(cls[stage_in] == GROUND_CLASS)))
+            entry.update(points_tested=int(np.count_nonzero(stage_in)), points_flagged=0,
+                         points_ground=ground)
+        entries.append(entry)
+    confusion = None
+    if truth is not None:
+        from algorithms.metrics import outlier_confusion
+
+        confusion = outlier_confusion(truth, flags != 0)
+    by_bit = {name: int(np.count_nonzero(flags & FLAGS_DTYPE(bit))) for name, bit in
+              FLAG_BITS.items()}
+    overall = overall_statistics(int(flags.size), int(np.count_nonzero(flags)), by_bit, confusion)
+    stats = pipeline_statistics(params, facts, note, entries, overall)
+    stats["mode"] = "tiled"
+    stats["tiles"] = {"tile_size": tiles.tile_size, "count": len(tiles.cells),
+                      "largest_tile_points": max(tiles.cells.values(), default=0),
+                      "halo_max": max(merged.halos, default=0.0)}
+    return stats
+
+
+def noise_truth(tiles: TileSet, reference: list[int] | None, folder: Path) -> np.ndarray | None:
+    """(n,) bool on disk: the points whose input class is a noise reference class."""
+    noise = noise_reference(reference)
+    if not noise:
+        return None
+    truth = np.lib.format.open_memmap(folder / "truth.npy", mode="w+", dtype=np.bool_,
+                                      shape=(tiles.points,))
+    for cell in tiles.cells:
+        rec = read_cell(tiles, cell)
+        truth[rec["index"]] = np.isin(rec["classification"], noise)
+    return truth
+
+
+# --------------------------------------------------------------------------- one machine
+
+
+def process_tiled(
+    in_path: Path, out_path: Path, params: PipelineParams, facts: lasio.LasFacts,
+    evidence: dict[str, Any] | None, *, tile_size: float, compress: bool,
+    progress: Progress | None = None, chunk_points: int = lasio.DEFAULT_CHUNK_POINTS,
+    trajectory: np.ndarray | None = None,
+) -> dict[str, Any] | str:
+    """Partition, run every tile here, merge, write ``out_path``; return the statistics, or
+    the reason the pipeline cannot run in tiles (nothing written then)."""
+    from lidar_outliers.pipeline import resolve_stages
+
+    t0 = time.perf_counter()
+    work = Path(tempfile.mkdtemp(prefix=".tiles-", dir=out_path.resolve().parent))
+    try:
+        tiles = partition(in_path, work / "cells", tile_size, chunk_points=chunk_points,
+                          progress=progress, progress_span=(0.0, 0.1))
+        stages, note = resolve_stages(params, tiles.gps_probe(), facts.to_dict(), evidence)
+        given = list(stages)
+        halos = stage_halos(stages, trajectory is not None)
+        if isinstance(halos, str):
+            return halos
+        t_cut = time.perf_counter()
+        estimated: dict[int, dict[str, Any]] = {}
+        while (i := pending_estimate(stages)) is not None:
+            values = (run_tile(tiles, cell, params, stages, trajectory, values_of=i)
+                      for cell in sorted(tiles.cells))
+            pinned, estimated[i] = pin_stage(tiles, stages[i], values, work / "values")
+            stages = [*stages[:i], pinned, *stages[i + 1:]]
+        results = []
+        for k, cell in enumerate(sorted(tiles.cells)):
+            path = work / "results" / result_name(cell)
+            save_result(path, run_tile(tiles, cell, params, stages, trajectory))
+            results.append(path)
+            if progress is not None:
+                progress(0.1 + 0.75 * (k + 1) / len(tiles.cells),
+                         f"tile {k + 1} of {len(tiles.cells)}")
+        t_run = time.perf_counter()
+        merged = merge(tiles, (load_result(p) for p in results), stages, params, work / "merged")
+        truth = noise_truth(tiles, params.reference_classes, work / "merged")
+        lasio.write_result(in_path, out_path, flags=merged.flags, scores=merged.scores,
+                           classification=merged.classification, laz=compress,
+                           chunk_points=chunk_points, progress=progress,
+                           progress_span=(0.85, 1.0))
+        stats = tiled_statistics(merged, tiles, stages, params, facts.to_dict(), note, truth,
+                                 estimated, given)
+        del merged, truth
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    stats["seconds"] = {"cut": round(t_cut - t0, 4), "detect": round(t_run - t_cut, 4),
+                        "write": round(time.perf_counter() - t_run, 4),
+                        "total": round(time.perf_counter() - t0, 4)}
+    return stats

@@ -1,0 +1,179 @@
+"""One job over two workers: a job of more than TILE_JOB_POINTS points is cut into tiles that
+both worker processes run, merged in the input's order: the same result as one machine. A
+corrupt tile fails the job with the tile's message and leaves nothing of a result. The workers
+beat and sweep every second and take a job without a heartbeat for 5 s for a dead worker's: no
+process holds a job while its tiles run, yet none is queued again."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from lidar_outliers.jobs.store import Store
+from lidar_outliers.process import process_file
+from tests.e2e.stack import RedisServer, Stack, alive, running_stack, wait_for, wait_job
+from tests.lasfiles import tile_scene
+
+SENSOR = [600_012.0, 5_000_012.0, 52.0]
+PIPELINE = {"pipeline": [{"detector": "dror", "origin": SENSOR, "multiplier": 8.0},
+                         {"detector": "section", "section_size": 2.0},
+                         {"detector": "patch", "k": 30}]}
+
+
+@pytest.fixture(scope="module")
+def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory,
+          compiled_detectors: None) -> Iterator[Stack]:
+    # quick heartbeats and sweeps (as in test_workers): a tiled job is not taken for a dead
+    # worker's while no process holds it
+    with running_stack(tmp_path_factory.mktemp("data"), redis_server.new_url(), workers=2,
+                       tile_job_points=2000, tile_size=3.0, task_time_limit=300,
+                       visibility_timeout=320, heartbeat_interval_seconds=1,
+                       stale_job_seconds=5) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def key(stack: Stack) -> str:
+    return stack.add_user("tiler")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tile_scene(tmp_path_factory.mktemp("in") / "scene.las")
+
+
+#: patch, then height_field with sigma estimated from the whole cloud: a round of tiles
+#: gathers the residuals, one task fixes sigma, a second round runs the pipeline.
+ESTIMATED = {"pipeline": [{"detector": "patch", "k": 30},
+                          {"detector": "height_field", "low": False}]}
+
+
+def submit(stack: Stack, key: str, path: Path, inputs: dict | None = None) -> str:
+    with stack.client(key) as client:
+        answer = client.post("/processes/pipeline/execution",
+                             files={"file": (path.name, path.read_bytes())},
+                             data={"inputs": json.dumps(inputs or PIPELINE)})
+        assert answer.status_code == 201, answer.text
+        return answer.json()["jobID"]
+
+
+def requeues(stack: Stack, job: str) -> int:
+    record = Store(stack.data_dir / "service.sqlite3", migrate=False).get_job(job)
+    assert record is not None
+    return record.requeues
+
+
+def tile_runs(stack: Stack) -> list[int]:
+    """Tile tasks each worker finished, from their logs."""
+    return [log.read_text().count("lidar_outliers.run_tile[") for log in
+            sorted(stack.logs.glob("worker*.log"))]
+
+
+@pytest.mark.parametrize("inputs", [PIPELINE, ESTIMATED], ids=["tiles", "estimate first"])
+def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, tmp_path, inputs):
+    job = submit(stack, key, scene, inputs)
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+        assert done["status"] == "successful", done["message"]
+        out = tmp_path / "service.las"
+        out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
+        stats = client.get(f"/jobs/{job}/results/statistics").json()
+    assert stats["mode"] == "tiled over workers"
+    assert stats["tiles"]["count"] >= 60 and stats["input"]["name"] == "scene.las"
+    assert all(runs > 0 for runs in tile_runs(stack)), tile_runs(stack)  # both took part
+    local = tmp_path / "local.las"
+    local_stats = process_file(scene, local, inputs)
+    assert local_stats["mode"] == "in memory"
+    a, b = laspy.read(local), laspy.read(out)
+    assert (a.outlier_flags != 0).any()
+    assert np.array_equal(a.outlier_flags, b.outlier_flags)
+    assert np.array_equal(a.classification, b.classification)
+    for name in (s["detector"] for s in inputs["pipeline"]):
+        x, y = np.asarray(a[f"{name}_score"]), np.asarray(b[f"{name}_score"])
+        assert np.array_equal(np.isnan(x), np.isnan(y))
+        np.testing.assert_allclose(x[~np.isnan(x)], y[~np.isnan(y)], rtol=1e-5, atol=1e-5)
+    assert stats["overall"] == local_stats["overall"]
+    for remote, here in zip(stats["stages"], local_stats["stages"], strict=True):
+        assert remote["params"] == here["params"]
+        if "sigma_source" in here["info"]:
+            assert remote["info"]["sigma"] == pytest.approx(here["info"]["sigma"], rel=1e-9)
+    assert not (stack.data_dir / "jobs" / job / "tiles").exists()
+    assert requeues(stack, job) == 0
+
+
+def test_transient_job_runs_whole_on_one_worker(stack, key, scene):
+    """transient needs the whole cloud: a large job of it is not cut into tiles."""
+    job = submit(stack, key, scene, {"pipeline": [{"detector": "transient"}]})
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+        assert done["status"] == "successful", done["message"]
+        stats = client.get(f"/jobs/{job}/results/statistics").json()
+    assert stats["mode"] == "in memory" and "tiles" not in stats
+    assert not (stack.data_dir / "jobs" / job / "tiles").exists()
+    assert requeues(stack, job) == 0
+
+
+def test_a_corrupt_tile_fails_the_job_with_its_message(stack, key, scene):
+    job = submit(stack, key, scene)
+    tiles = stack.data_dir / "jobs" / job / "tiles"
+    wait_for(lambda: (tiles / "tiles.json").exists(), 120, "the job's tiles", interval=0.02)
+    for cell in tiles.glob("cell_*.bin"):
+        with open(cell, "ab") as fh:
+            fh.write(b"not a point")
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+    assert done["status"] == "failed"
+    assert "tile file cell_" in done["message"] and "expected" in done["message"], done["message"]
+    # the chord's error callback ran: no tiles, no result, no statistics are left
+    wait_for(lambda: not tiles.exists(), 120, "the tiles to be removed")
+    assert not [p.name for p in (stack.data_dir / "jobs" / job).glob("result*")]
+    assert not (stack.data_dir / "jobs" / job / "statistics.json").exists()
+    with stack.client(key) as client:
+        assert client.get(f"/jobs/{job}").json()["status"] == "failed"
+    # the workers are free again: the next job runs to the end
+    again = submit(stack, key, scene)
+    with stack.client(key) as client:
+        assert wait_job(client, again, ("successful", "failed"), timeout=300)["status"] == (
+            "successful")
+
+
+def test_a_tile_whose_worker_is_killed_is_run_again_and_only_it(stack, key, scene, tmp_path):
+    before = [log.read_text() for log in sorted(stack.logs.glob("worker*.log"))]
+    job = submit(stack, key, scene)
+    scratch = stack.data_dir / "scratch"
+
+    def tile_process() -> int | None:
+        """The pid of a process running one of the job's tiles (its scratch folder's name)."""
+        for folder in scratch.glob(f"tile-{job}-*"):
+            pid = int(folder.name.rsplit("-", 2)[1])
+            if pid in alive([pid]):
+                return pid
+        return None
+
+    victim = wait_for(tile_process, 120, "a tile to run", interval=0.01)
+    os.kill(victim, signal.SIGKILL)
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+        assert done["status"] == "successful", done["message"]
+        out = tmp_path / "service.las"
+        out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
+        count = client.get(f"/jobs/{job}/results/statistics").json()["tiles"]["count"]
+    logs = [log.read_text()[len(old):] for log, old in
+            zip(sorted(stack.logs.glob("worker*.log")), before, strict=True)]
+    received, succeeded = (
+        sum(len(re.findall(rf"lidar_outliers\.run_tile\[[^\]]+\] {what}", text)) for text in logs)
+        for what in ("received", "succeeded"))
+    assert succeeded == count
+    assert received == count + 1  # the killed tile twice, every other tile once
+    assert requeues(stack, job) == 0
+    local = tmp_path / "local.las"
+    process_file(scene, local, PIPELINE)
+    assert np.array_equal(laspy.read(local).outlier_flags, laspy.read(out).outlier_flags)
