@@ -50,9 +50,9 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tile_scene(tmp_path_factory.mktemp("in") / "scene.las")
 
 
-#: patch, then height_field with sigma estimated from the whole cloud: a round of tiles
+#: dror, then height_field with sigma estimated from the whole cloud: a round of tiles
 #: gathers the residuals, one task fixes sigma, a second round runs the pipeline.
-ESTIMATED = {"pipeline": [{"detector": "patch", "k": 30},
+ESTIMATED = {"pipeline": [{"detector": "dror", "origin": SENSOR, "multiplier": 8.0},
                           {"detector": "height_field", "low": False}]}
 
 
