@@ -1,7 +1,7 @@
 """Resumable uploads (tus 1.0.0) over real HTTP against the real stack (uvicorn, Redis, a
 worker): an upload cut at half continues from the server's offset, checksums and offsets are
 enforced, uploads are private, a finished one runs as a job like a plain upload, the client
-resumes after a dropped connection, and the README's curl loop works."""
+resumes after a dropped connection, and the documented curl loop (docs/service.md) works."""
 
 from __future__ import annotations
 
@@ -359,16 +359,16 @@ def test_client_submit_uploads_resumably_and_removes_the_upload(stack: Stack, ke
     assert refused.value.status == 401
 
 
-def readme_curl_loop() -> str:
-    text = (ROOT / "README.md").read_text()
-    match = re.search(r"### Resumable uploads \(tus\).*?```sh\n(.*?)```", text, re.DOTALL)
-    assert match, "README.md has no curl example of resumable uploads"
+def documented_curl_loop() -> str:
+    text = (ROOT / "docs" / "service.md").read_text()
+    match = re.search(r"## Resumable uploads \(tus\).*?```sh\n(.*?)```", text, re.DOTALL)
+    assert match, "docs/service.md has no curl example of resumable uploads"
     return match.group(1)
 
 
-def test_readme_curl_example_runs(stack: Stack, key: str, las_file: Path,
+def test_documented_curl_example_runs(stack: Stack, key: str, las_file: Path,
                                   tmp_path: Path) -> None:
-    script = readme_curl_loop()
+    script = documented_curl_loop()
     assert "CHUNK=67108864" in script
     script = script.replace("CHUNK=67108864", "CHUNK=30000")  # several pieces of a small file
     (tmp_path / "cloud.las").write_bytes(las_file.read_bytes())
