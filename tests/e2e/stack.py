@@ -252,6 +252,16 @@ def running_stack(
         stack.stop()
 
 
+def assert_problem(answer: httpx.Response, status: int, slug: str) -> dict:
+    """The answer is an RFC 9457 problem of ``status`` whose type ends in ``slug``."""
+    assert answer.status_code == status, answer.text
+    assert answer.headers["content-type"] == "application/problem+json"
+    body = answer.json()
+    assert body["status"] == status and body["type"].endswith(slug), body
+    assert body["title"] and body["detail"]
+    return body
+
+
 def wait_job(client: httpx.Client, job_id: str, statuses: tuple[str, ...],
              timeout: float = 180.0) -> dict:
     def check() -> dict | None:

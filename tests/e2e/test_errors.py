@@ -15,7 +15,7 @@ from pydantic_core import to_jsonable_python
 
 from lidar_outliers.detectors import DETECTORS
 from lidar_outliers.params import PipelineParams
-from tests.e2e.stack import RedisServer, Stack, running_stack
+from tests.e2e.stack import RedisServer, Stack, assert_problem, running_stack
 from tests.lasfiles import write_cloud
 
 OGC = "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
@@ -40,16 +40,6 @@ def las_bytes(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     path = tmp_path_factory.mktemp("in") / "scan.las"
     write_cloud(path, n=2000, seed=3)
     return path.read_bytes()
-
-
-def assert_problem(answer: httpx.Response, status: int, slug: str) -> dict:
-    assert answer.status_code == status, answer.text
-    assert answer.headers["content-type"] == "application/problem+json"
-    body = answer.json()
-    assert body["status"] == status
-    assert body["type"].endswith(slug), body
-    assert body["title"] and body["detail"]
-    return body
 
 
 def submit(client: httpx.Client, data: bytes, inputs: dict | None = None,

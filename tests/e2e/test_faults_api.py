@@ -22,7 +22,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.e2e.stack import ROOT, RedisServer, Stack, running_stack, wait_job
+from tests.e2e.stack import ROOT, RedisServer, Stack, assert_problem, running_stack, wait_job
 from tests.lasfiles import write_cloud
 
 ACTIVE_LIMIT = 4
@@ -41,15 +41,6 @@ def las_bytes(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     path = tmp_path_factory.mktemp("in") / "scan.las"
     write_cloud(path, n=1500, seed=5)
     return path.read_bytes()
-
-
-def assert_problem(answer: httpx.Response, status: int, slug: str) -> dict:
-    assert answer.status_code == status, answer.text
-    assert answer.headers["content-type"] == "application/problem+json"
-    body = answer.json()
-    assert body["status"] == status and body["type"].endswith(slug), body
-    assert body["title"] and body["detail"]
-    return body
 
 
 def submit(client: httpx.Client, data: bytes, inputs: str | None = None,
