@@ -142,7 +142,7 @@ def _execute(
     layout.sweep_scratch(settings, older_than=settings.visibility_timeout)
     scratch = layout.scratch(settings, f"job-{job_id}")
     try:
-        stored = _run(settings, store, storage, job_id, scratch, started.attempts, dispatch)
+        stored = _run(settings, store, storage, started, scratch, dispatch)
     except Superseded:
         return None  # the job's files are the newer delivery's now
     except CancelledError:
@@ -152,20 +152,19 @@ def _execute(
         return JobStatus.dismissed
     except LidarOutliersError as exc:
         return fail_job(store, storage, job_id, disk_full_message(exc) or str(exc),
-                     started.attempts)
+                        started.attempts)
     except MemoryError:
         return fail_job(store, storage, job_id, "the job ran out of memory", started.attempts)
     except time_limit_errors:
         return fail_job(store, storage, job_id,
-                     f"the job exceeded the time limit of {settings.task_time_limit} s",
-                     started.attempts)
+                        f"the job exceeded the time limit of {settings.task_time_limit} s",
+                        started.attempts)
     except Exception as exc:
-        if is_disk_full(exc):
-            return fail_job(store, storage, job_id, disk_full_message(exc) or str(exc),
-                         started.attempts)
-        log.exception("job %s failed", job_id)
-        return fail_job(store, storage, job_id, f"internal error: {type(exc).__name__}: {exc}",
-                     started.attempts)
+        message = disk_full_message(exc)
+        if message is None:
+            log.exception("job %s failed", job_id)
+            message = f"internal error: {type(exc).__name__}: {exc}"
+        return fail_job(store, storage, job_id, message, started.attempts)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     if stored is None:
@@ -179,15 +178,14 @@ def _execute(
     return JobStatus.successful
 
 
-def _run(settings: Settings, store: Store, storage: Storage, job_id: str,
-         scratch: Path, attempt: int, dispatch: Dispatch | None = None) -> int | None:
+def _run(settings: Settings, store: Store, storage: Storage, job: Job,
+         scratch: Path, dispatch: Dispatch | None = None) -> int | None:
     """The pipeline over a local copy of the job's input; the statistics name the user's
     files. The result and the statistics are put into the storage when both are complete.
     Returns the bytes the job now keeps, or None when its tiles were handed to the queue."""
     from lidar_outliers.process import process_file  # heavy imports (numba) only when run
 
-    job = store.get_job(job_id)
-    assert job is not None
+    job_id, attempt = job.id, job.attempts
     params = PipelineParams.model_validate(job.inputs)
     suffix = ".laz" if job.laz else ".las"
     source, result = scratch / f"input{suffix}", scratch / f"result{suffix}"
