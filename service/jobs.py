@@ -325,9 +325,6 @@ class JobService:
             raise Problem(404, "no-such-job", f"no job {job_id!r} of yours")
         return job
 
-    def list_jobs(self, user: User, limit: int, offset: int) -> tuple[list[Job], int]:
-        return self.store.list_jobs(user.id, limit, offset)
-
     def dismiss(self, user: User, job_id: str) -> Job:
         """Cancel a queued or running job (the worker stops at its next progress report) or
         delete a finished job's files; the job stays listed as dismissed."""
