@@ -8,7 +8,7 @@ is bounded per scanner (the open segment's last rows).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,6 +72,13 @@ class TemporalStream:
     ``detect_temporal`` on those points, max_gap per group from that group's points among them
     (a group first seen later: from its first rows that hold a positive time step). The
     resolved values are in ``info``.
+
+    ``max_gap_by_group``: each group's max_gap in seconds (inf: one segment), as
+    ``detect_temporal`` resolves 'auto' over the whole series; a caller that can read the
+    series twice passes them to get the batch's segments exactly. ``differences``: instead of
+    scores, return each point's unit-sigma differences (m, 4): dz of eq. 15 per axis and
+    sqrt(eq. 16) (NaN where untested), from which ``estimate_sigma`` and
+    ``scores_from_differences`` give the batch's sigma and scores; sigma is not used then.
     """
 
     def __init__(
@@ -83,15 +90,20 @@ class TemporalStream:
         alpha: float = 0.001,
         max_gap: float | str = "auto",
         warmup_points: int = 200_000,
+        max_gap_by_group: Mapping[int, float] | None = None,
+        differences: bool = False,
     ) -> None:
         self._p = check_params(n1, n2, sigma, alpha, max_gap)
+        self._given_gaps = None if max_gap_by_group is None else dict(max_gap_by_group)
+        self._differences = bool(differences)
         if isinstance(warmup_points, bool) or not isinstance(warmup_points, int | np.integer):
             raise ParameterError(f"warmup_points must be an integer, got {warmup_points!r}")
         self._warmup_points = int(warmup_points)
         self._size = self._p.n1 + self._p.n2 + 1
         self._sigma: np.ndarray | None = self._p.sigma
         self._sigma_source = "given" if self._sigma is not None else "auto"
-        self._resolved = self._sigma is not None and self._p.max_gap is not None
+        self._resolved = self._sigma is not None and (
+            self._p.max_gap is not None or self._given_gaps is not None)
         self._warmup: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]] = []
         self._warmup_count = 0
         self._tails: dict[int, _Tail] = {}
@@ -180,8 +192,11 @@ class TemporalStream:
 
     def _tail(self, gid: int) -> _Tail:
         if gid not in self._tails:
+            gap = self._p.max_gap
+            if self._given_gaps is not None and gid in self._given_gaps:
+                gap = float(self._given_gaps[gid])
             self._tails[gid] = _Tail(
-                np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64), max_gap=self._p.max_gap
+                np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64), max_gap=gap
             )
         return self._tails[gid]
 
@@ -198,7 +213,7 @@ class TemporalStream:
         valid = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
         if not valid.all():
             out_index.append(index[~valid].astype(np.int64))
-            out_score.append(np.full(int(np.count_nonzero(~valid)), np.nan))
+            out_score.append(np.full((int(np.count_nonzero(~valid)), *self._width), np.nan))
         rows_by_group = _split_by_group(np.flatnonzero(valid), group)
         for gid in sorted(set(rows_by_group) | (set(self._tails) if final else set())):
             rows = rows_by_group.get(gid, np.zeros(0, dtype=np.int64))
@@ -209,13 +224,26 @@ class TemporalStream:
             if final:
                 del self._tails[gid]
         if not out_index:
-            return np.zeros(0, dtype=np.int64), np.zeros(0)
+            return np.zeros(0, dtype=np.int64), np.zeros((0, *self._width))
         idx = np.concatenate(out_index).astype(np.int64, copy=False)
         score = np.concatenate(out_score)
         self._counts["points"] += idx.size
+        if self._differences:
+            self._counts["points_tested"] += int(np.count_nonzero(~np.isnan(score[:, 3])))
+            return idx, score
         self._counts["points_tested"] += int(np.count_nonzero(~np.isnan(score)))
         self._counts["points_flagged"] += int(np.count_nonzero(score > self.critical_value))
         return idx, score
+
+    @property
+    def _width(self) -> tuple[int, ...]:
+        """The shape of one point's output: () a score, (4,) its unit differences."""
+        return (4,) if self._differences else ()
+
+    def _output(self, dz: np.ndarray, sdz: np.ndarray) -> np.ndarray:
+        if self._differences:
+            return np.column_stack([dz, sdz])
+        return scores_from_differences(dz, sdz, self._sigma)
 
     def _advance(
         self,
@@ -238,7 +266,7 @@ class TemporalStream:
             step = median_positive_step(t)
             if not math.isfinite(step) and not final:
                 tail.t, tail.xyz, tail.index = t, xyz, index  # cannot cut segments yet
-                return np.zeros(0, dtype=np.int64), np.zeros(0)
+                return np.zeros(0, dtype=np.int64), np.zeros((0, *self._width))
             tail.max_gap = 5.0 * step if math.isfinite(step) else math.inf
         if gid not in self._gap_by_group:
             self._gap_by_group[gid] = tail.max_gap if math.isfinite(tail.max_gap) else None
@@ -248,10 +276,10 @@ class TemporalStream:
         )
         self._segments += n_seg
         self._short_segments += n_short
-        score = np.zeros(0)
+        score = np.zeros((0, *self._width))
         if targets.size:
             dz, sdz = window_differences(t, xyz, np.empty(0), targets, lo, hi)
-            score = scores_from_differences(dz, sdz, self._sigma)
+            score = self._output(dz, sdz)
         # Keep the open segment's pending rows and up to n1 + n2 rows of context before them.
         n = t.size
         keep = n if final else max(0, seg_start, done - (self._size - 1))

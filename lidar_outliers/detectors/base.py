@@ -117,6 +117,9 @@ class Detector:
     points reached further than the halo is run again with a wider one. ``uses_trajectory``:
     with a trajectory the detector follows beams across the cloud, so it does not run in tiles.
     ``whole_cloud``: why the detector needs the whole cloud (its halo None), for the statistics.
+    ``streams``: the result depends on each scanner's time series alone (no XY neighbourhood),
+    so a tiled run whose pipeline starts with such stages streams them over the file in time
+    order first and tiles the rest (:mod:`lidar_outliers.prepass`).
     """
 
     name: str
@@ -131,6 +134,7 @@ class Detector:
     uses_trajectory: bool = False
     whole_cloud: str | None = None
     estimate: Estimate | None = None
+    streams: bool = False
     model: type[StageModel] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

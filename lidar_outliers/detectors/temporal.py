@@ -27,4 +27,6 @@ DETECTOR = Detector(
     summary="Moving fixed-interval smoother along each scanner's time series (eqs. 1-17).",
     flag_bit=1,
     needs=("gps_time",),
+    # each scanner's time series, no XY neighbourhood: streamed along time before any tiles
+    streams=True,
 )
