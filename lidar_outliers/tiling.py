@@ -12,6 +12,10 @@
 3. :func:`merge` writes the tiles' results into arrays on disk in the input's point order and
    the output file from them.
 
+A pipeline that starts with stages along each scanner's time series (``temporal``: no halo)
+runs them first over the whole file, streamed in time order (:mod:`lidar_outliers.prepass`),
+then the rest tile by tile on the points they left; the merge starts from their arrays.
+
 The tiles are independent: :func:`process_tiled` runs them one after another here, the job
 service spreads them over its workers (:mod:`lidar_outliers.jobs.tiles`).
 """
@@ -49,6 +53,7 @@ from lidar_outliers.pipeline import (
     run_pipeline,
     stage_entry,
 )
+from lidar_outliers.prepass import Streamed, leading_streamed, run_streamed
 
 #: One point in a tile file.
 POINT_DTYPE = np.dtype([
@@ -276,6 +281,7 @@ def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = 
 def run_tile(
     tiles: TileSet, cell: tuple[int, int], params: PipelineParams, stages: list[StageModel],
     trajectory: np.ndarray | None = None, values_of: int | None = None,
+    dropped: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The pipeline's result for the points of ``cell``: the whole cloud's result for them.
 
@@ -287,7 +293,13 @@ def run_tile(
     ``values_of=i``: instead, the values stage i estimates a parameter from
     (:class:`~lidar_outliers.detectors.base.Estimate`) for the points of the cell: ``index``
     and ``values`` (NaN where none, and for points earlier stages flagged).
+
+    ``dropped``: (points,) ``outlier_flags`` of streamed stages run before (in file order, e.g.
+    a memory map): ``stages`` run on the points it leaves (0), as the whole pipeline runs its
+    later stages, and the result holds those points only (with no stages: as they are).
     """
+    if not stages and values_of is None:
+        return _untouched(tiles, cell, params, dropped)
     local_traj = None if trajectory is None else trajectory - np.r_[0.0, tiles.origin]
     halos = stage_halos(stages, trajectory is not None)
     if isinstance(halos, str):
@@ -299,6 +311,8 @@ def run_tile(
     while True:
         total = float(sum(halos))
         rec, everything = load_region(tiles, cell, total)
+        if dropped is not None:
+            rec = rec[np.asarray(dropped[rec["index"]]) == 0]
         cloud = tile_cloud(tiles, rec, local_traj)
         result = run_pipeline(cloud, tile_params) if run else None
         flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
@@ -321,6 +335,19 @@ def run_tile(
     out["stages"] = json.dumps(jsonable([
         {"info": s.get("info"), "critical_value": s.get("critical_value")}
         for s in result.statistics["stages"]]))
+    return out
+
+
+def _untouched(tiles: TileSet, cell: tuple[int, int], params: PipelineParams,
+               dropped: np.ndarray | None) -> dict[str, Any]:
+    """A tile's result when no stage is left to run: its points' flags 0 and input classes."""
+    rec = read_cell(tiles, cell)
+    if dropped is not None:
+        rec = rec[np.asarray(dropped[rec["index"]]) == 0]
+    out: dict[str, Any] = {"index": rec["index"], "flags": np.zeros(len(rec), FLAGS_DTYPE),
+                           "halo": np.float64(0.0), "stages": "[]"}
+    if params.classify:
+        out["classification"] = rec["classification"]
     return out
 
 
@@ -431,9 +458,12 @@ class Merged:
 
 def merge(
     tiles: TileSet, results: Iterable[dict[str, Any]], stages: list[StageModel],
-    params: PipelineParams, folder: Path,
+    params: PipelineParams, folder: Path, first: Streamed | None = None,
 ) -> Merged:
-    """Scatter the tiles' results into memory-mapped arrays in the input's order."""
+    """Scatter the tiles' results into memory-mapped arrays in the input's order.
+
+    ``first``: the arrays of the streamed stages that ran before the tiles (the tiles then
+    hold the points those left, and the points they flagged have their results already)."""
     n = tiles.points
     folder.mkdir(parents=True, exist_ok=True)
 
@@ -448,13 +478,16 @@ def merge(
               if get_detector(s.detector).kind == "outlier"}
     classes = mapped("classification", np.uint8, 0) if params.classify else None
     seen = mapped("seen", np.bool_, False)
+    if first is not None:
+        _start_from(first, flags, scores, classes, seen, params.noise_class)
     tile_stages, halos, sizes = [], [], []
     for res in results:
         index = res["index"]
         flags[index] = res["flags"]
         seen[index] = True
         for name, arr in scores.items():
-            arr[index] = res[f"score_{name}"]
+            if first is None or name not in first.scores:
+                arr[index] = res[f"score_{name}"]
         if classes is not None:
             classes[index] = res["classification"]
         tile_stages.append(json.loads(str(res["stages"])))
@@ -471,19 +504,27 @@ def tiled_statistics(
     facts: dict[str, Any], note: dict[str, Any], truth: np.ndarray | None,
     estimated: dict[int, dict[str, Any]] | None = None,
     given: list[StageModel] | None = None,
+    streamed: list[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """The statistics of a tiled run: counts over all points, each stage's ``info`` and critical
     value from the largest tile. ``estimated``: per stage index, what was estimated from the
-    whole cloud; ``given``: the stages as the job gave them (before estimates were fixed)."""
+    whole cloud; ``given``: the stages as the job gave them (before estimates were fixed);
+    ``streamed``: ``info`` and critical value of the leading stages streamed over the whole
+    file (:mod:`lidar_outliers.prepass`), which the tiles did not run."""
     flags = merged.flags
     earlier = FLAGS_DTYPE(0)
     entries = []
     biggest = int(np.argmax(merged.sizes)) if merged.sizes else 0
+    streamed = streamed or []
     for i, stage in enumerate(stages):
         spec = get_detector(stage.detector)
         stage_in = (flags & earlier) == 0
         entry = stage_entry(given[i] if given else stage, int(np.count_nonzero(stage_in)))
-        first = merged.tile_stages[biggest][i] if merged.tile_stages else {}
+        if i < len(streamed):
+            first = streamed[i]
+        else:
+            first = (merged.tile_stages[biggest][i - len(streamed)] if merged.tile_stages
+                     else {})
         entry["info"] = first.get("info")
         if estimated and i in estimated and isinstance(entry["info"], dict):
             entry["info"] = {**entry["info"], **estimated[i]}
@@ -521,6 +562,21 @@ def tiled_statistics(
     return stats
 
 
+def _start_from(first: Streamed, flags: np.ndarray, scores: dict[str, np.ndarray],
+                classes: np.ndarray | None, seen: np.ndarray, noise_class: int) -> None:
+    """The merged arrays as the streamed stages left them, chunk by chunk: their flags and
+    scores; the points they flagged are done (noise, with ``classify``)."""
+    step = 4_000_000
+    for a in range(0, len(flags), step):
+        part = np.asarray(first.flags[a:a + step])
+        flags[a:a + step] = part
+        seen[a:a + step] = part != 0
+        if classes is not None:
+            classes[a:a + step][part != 0] = noise_class
+        for name, score in first.scores.items():
+            scores[name][a:a + step] = score[a:a + step]
+
+
 def noise_truth(tiles: TileSet, reference: list[int] | None, folder: Path) -> np.ndarray | None:
     """(n,) bool on disk: the points whose input class is a noise reference class."""
     noise = noise_reference(reference)
@@ -554,34 +610,46 @@ def process_tiled(
                           progress=progress, progress_span=(0.0, 0.1))
         stages, note = resolve_stages(params, tiles.gps_probe(), facts.to_dict(), evidence)
         given = list(stages)
-        halos = stage_halos(stages, trajectory is not None)
+        lead = leading_streamed(stages)
+        halos = stage_halos(stages[lead:], trajectory is not None)
         if isinstance(halos, str):
             return halos
+        if lead and not tiles.has_gps_time:
+            return f"{stages[0].detector} needs gps_time, which this file does not have"
         t_cut = time.perf_counter()
+        first = run_streamed(in_path, stages[:lead], tiles.points, work / "streamed",
+                             chunk_points=chunk_points, progress=progress) if lead else None
+        dropped = None if first is None else first.flags
+        rest = stages[lead:]
         estimated: dict[int, dict[str, Any]] = {}
-        while (i := pending_estimate(stages)) is not None:
-            values = (run_tile(tiles, cell, params, stages, trajectory, values_of=i)
-                      for cell in sorted(tiles.cells))
-            pinned, estimated[i] = pin_stage(tiles, stages[i], values, work / "values")
-            stages = [*stages[:i], pinned, *stages[i + 1:]]
+        while (i := pending_estimate(rest)) is not None:
+            values = (run_tile(tiles, cell, params, rest, trajectory, values_of=i,
+                               dropped=dropped) for cell in sorted(tiles.cells))
+            pinned, estimated[lead + i] = pin_stage(tiles, rest[i], values, work / "values")
+            rest = [*rest[:i], pinned, *rest[i + 1:]]
+        stages = [*stages[:lead], *rest]
         results = []
         for k, cell in enumerate(sorted(tiles.cells)):
             path = work / "results" / result_name(cell)
-            save_result(path, run_tile(tiles, cell, params, stages, trajectory))
+            save_result(path, run_tile(tiles, cell, params, rest, trajectory, dropped=dropped))
             results.append(path)
             if progress is not None:
                 progress(0.1 + 0.75 * (k + 1) / len(tiles.cells),
                          f"tile {k + 1} of {len(tiles.cells)}")
         t_run = time.perf_counter()
-        merged = merge(tiles, (load_result(p) for p in results), stages, params, work / "merged")
+        merged = merge(tiles, (load_result(p) for p in results), stages, params, work / "merged",
+                       first)
         truth = noise_truth(tiles, params.reference_classes, work / "merged")
         lasio.write_result(in_path, out_path, flags=merged.flags, scores=merged.scores,
                            classification=merged.classification, laz=compress,
                            chunk_points=chunk_points, progress=progress,
                            progress_span=(0.85, 1.0))
         stats = tiled_statistics(merged, tiles, stages, params, facts.to_dict(), note, truth,
-                                 estimated, given)
-        del merged, truth
+                                 estimated, given, None if first is None else first.stages)
+        if first is not None:
+            stats["streamed"] = {"stages": [s.detector for s in stages[:lead]],
+                                 "seconds": round(first.seconds, 4)}
+        del merged, truth, first, dropped
     finally:
         shutil.rmtree(work, ignore_errors=True)
     stats["seconds"] = {"cut": round(t_cut - t0, 4), "detect": round(t_run - t_cut, 4),

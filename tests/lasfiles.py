@@ -185,3 +185,21 @@ def tile_scene(path: Path, n: int = 7000, seed: int = 3) -> Path:
                      gps_time=np.sort(rng.uniform(1000, 1100, n)),
                      point_source_id=np.ones(n, np.uint16), intensity=intensity,
                      offsets=(600_000, 5_000_000, 0), vlrs=())
+
+
+def scanned_tile_scene(path: Path, *, shuffled: bool = False, seed: int = 3) -> Path:
+    """:func:`tile_scene`'s points with the time stamps of two scanners sweeping it line by
+    line (lines 0.25 m apart in y, back and forth in x; scanner 1 the west half, 2 the east),
+    so that ``temporal`` follows real scan lines; records in time order, or ``shuffled``."""
+    las = laspy.read(tile_scene(path, seed=seed))
+    x, y = np.asarray(las.x) - 600_000, np.asarray(las.y) - 5_000_000
+    line = np.floor(y / 0.25)
+    rng = np.random.default_rng(seed)
+    along = (np.where(line % 2 == 0, x, 24.0 - x) + rng.normal(0, 0.005, x.size)) / 24.0
+    t = 1000.0 + 0.1 * line + 0.09 * along  # a beam 5 mm off the line's pace
+    order = rng.permutation(len(t)) if shuffled else np.argsort(t)
+    las.gps_time = t
+    las.point_source_id = np.where(x < 12.0, 1, 2).astype(np.uint16)
+    las.points = las.points[order]
+    las.write(str(path))
+    return Path(path)

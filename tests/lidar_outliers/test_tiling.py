@@ -21,7 +21,7 @@ from lidar_outliers.tiling import (
     partition,
     run_tile,
 )
-from tests.lasfiles import tile_scene, write_las
+from tests.lasfiles import scanned_tile_scene, tile_scene, write_las
 
 SENSOR = (600_012.0, 5_000_012.0, 52.0)
 TILE = 3.0  # metres: the box is 6 x 4 m, the sections 2 m, the patches about 1 m across
@@ -84,6 +84,55 @@ def test_tiled_run_equals_whole_cloud(scene, tmp_path, name):
             assert st["info"]["sigma"] == pytest.approx(sw["info"]["sigma"], rel=1e-9)
 
 
+#: Pipelines that start with temporal: streamed along time over the whole file first, the
+#: rest tile by tile on the points it left. A 1 ms max_gap leaves short scan-line segments
+#: untested, so the later stage has outliers of its own to find.
+STREAMED = {
+    "temporal": [{"detector": "temporal"}],
+    "temporal, then patch": [{"detector": "temporal"}, {"detector": "patch", "k": 30}],
+    "temporal with short segments, then patch": [
+        {"detector": "temporal", "max_gap": 0.001}, {"detector": "patch", "k": 30}],
+    "temporal with short segments, then height_field": [
+        {"detector": "temporal", "max_gap": 0.001, "sigma": [0.005, 0.08, 0.008]},
+        {"detector": "height_field", "low": False}],
+}
+
+
+@pytest.fixture(scope="module", params=["in time order", "shuffled"])
+def scanned(request, tmp_path_factory) -> Path:
+    """The scene swept line by line by two scanners; its records in time order, or not."""
+    shuffled = request.param == "shuffled"
+    return scanned_tile_scene(tmp_path_factory.mktemp("scanned") / "scene.las",
+                              shuffled=shuffled)
+
+
+@pytest.mark.parametrize("name", list(STREAMED))
+def test_streamed_stage_then_tiles_equals_whole_cloud(scanned, tmp_path, name):
+    """temporal's time series lie across every tile: it is streamed over the file in time
+    order (the records sorted on disk when they are not), the later stages run tile by tile
+    on what it left, and flags, scores and every stage's counts are the whole run's, the
+    streamed stage's info (sigma, max_gap per scanner, segments) too."""
+    pipeline = STREAMED[name]
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    stats_whole = process_file(scanned, whole, {"pipeline": pipeline, "classify": True})
+    stats = process_file(scanned, tiled, {"pipeline": pipeline, "classify": True},
+                         tile_size=TILE, chunk_points=1000)
+    assert stats_whole["mode"] == "in memory" and stats["mode"] == "tiled"
+    assert stats["streamed"]["stages"] == ["temporal"]
+    a, b = _results(whole), _results(tiled)
+    _assert_same(a, b, [s["detector"] for s in pipeline])
+    for sw, st in zip(stats_whole["stages"], stats["stages"], strict=True):
+        assert sw["points_flagged"] > 0 or sw["detector"] != "temporal"
+        assert (sw["points_in"], sw["points_tested"], sw["points_flagged"]) == (
+            st["points_in"], st["points_tested"], st["points_flagged"])
+        assert st["critical_value"] == pytest.approx(sw["critical_value"])
+    assert stats["stages"][0]["info"] == stats_whole["stages"][0]["info"]
+    assert stats["overall"] == stats_whole["overall"]
+    if len(pipeline) > 1 and "short" in name:
+        assert stats["stages"][1]["points_flagged"] > 0
+    assert not list(tmp_path.glob(".tiles-*"))
+
+
 @pytest.fixture(scope="module")
 def moving(tmp_path_factory) -> Path:
     """Ground seen at many moments, a few blobs seen at one moment each over it (moving
@@ -134,10 +183,21 @@ def test_every_detector_declares_whether_it_tiles():
     tiled = {name for name, d in DETECTORS.items() if d.halo(d.parameters()) is not None}
     assert {"patch", "section", "dror", "snow"} <= tiled
     assert "transient" not in tiled
+    streamed = {name for name, d in DETECTORS.items() if d.streams}
+    assert streamed == {"temporal"} and not streamed & tiled
+
+
+def test_streamed_stage_after_a_tiled_one_runs_whole_and_says_why(scene, tmp_path):
+    """Only leading stages stream: temporal after patch would see patch's leftovers, which
+    only the whole cloud knows before the tiles ran."""
+    pipeline = {"pipeline": [{"detector": "patch", "k": 30}, {"detector": "temporal"}]}
+    stats = process_file(scene, tmp_path / "tiled.las", pipeline, tile_size=TILE)
+    assert stats["mode"] == "in memory"
+    assert stats["tiling"].startswith("whole cloud in memory: temporal")
 
 
 @pytest.mark.parametrize("name", [n for n, d in DETECTORS.items()
-                                  if d.halo(d.parameters()) is None])
+                                  if d.halo(d.parameters()) is None and not d.streams])
 def test_stage_without_halo_runs_whole_and_says_why(scene, tmp_path, name):
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
     pipeline = [{"detector": name}]
