@@ -10,6 +10,12 @@ results in the input's point order, writes the result and the statistics and end
 (:func:`merge_job`); a tile that fails ends the job as failed with its message
 (:func:`fail_tiled_job`) and nothing of the result is left. The Celery side (a chord of tile
 tasks and a merge task) is in ``worker/tasks.py``.
+
+A pipeline that starts with stages along the scanners' time series (``temporal``) has them
+streamed over the whole input by the worker that cuts the tiles, before any tile is queued
+(:mod:`lidar_outliers.prepass`); their flags and scores go to the job's storage in the
+input's point order, the tiles run the remaining stages on the points those left and the
+merge starts from them.
 """
 
 from __future__ import annotations
@@ -20,7 +26,10 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from lidar_outliers import lasio
+from lidar_outliers.detectors import get_detector
 from lidar_outliers.errors import CancelledError, LidarOutliersError
 from lidar_outliers.jobs import layout
 from lidar_outliers.jobs.callbacks import FAILED, SUCCESS
@@ -36,7 +45,8 @@ from lidar_outliers.jobs.settings import Settings, get_settings
 from lidar_outliers.jobs.storage import ObjectMissing, Storage
 from lidar_outliers.jobs.store import JobStatus, Store
 from lidar_outliers.params import PipelineParams
-from lidar_outliers.pipeline import check_noise_class, resolve_stages
+from lidar_outliers.pipeline import check_noise_class, jsonable, resolve_stages
+from lidar_outliers.prepass import Streamed, leading_streamed, run_streamed
 from lidar_outliers.tiling import (
     MANIFEST,
     TileError,
@@ -58,6 +68,8 @@ from lidar_outliers.tiling import (
 
 log = logging.getLogger(__name__)
 Cell = tuple[int, int]
+#: Name prefix of the streamed stages' arrays among the job's tile files.
+STREAMED = "streamed_"
 
 
 def split_job(
@@ -73,7 +85,8 @@ def split_job(
     facts = lasio.inspect_las(source)
     if facts.points <= settings.tile_job_points or "trajectory" in job.facts:
         return None
-    if params.pipeline is not None and isinstance(stage_halos(params.pipeline), str):
+    if params.pipeline is not None and isinstance(
+            stage_halos(params.pipeline[leading_streamed(params.pipeline):]), str):
         return None
     check_noise_class(params, facts.point_format)
     evidence = None
@@ -85,18 +98,59 @@ def split_job(
     tiles = partition(source, scratch / "cells", size, progress=progress,
                       progress_span=(0.0, 0.05))
     stages, note = resolve_stages(params, tiles.gps_probe(), facts.to_dict(), evidence)
-    if isinstance(stage_halos(stages), str):
+    lead = leading_streamed(stages)
+    if isinstance(stage_halos(stages[lead:]), str) or (lead and not tiles.has_gps_time):
         return None
+    streamed = _stream_leading(storage, job_id, source, stages[:lead], tiles.points,
+                               scratch / "streamed", progress) if lead else []
     for cell in tiles.cells:
         storage.put_file(layout.tile_key(job_id, cell_name(cell)), tiles.cell_path(cell),
                          move=True)
     dumped = [s.model_dump(mode="json") for s in stages]
     manifest = {**tiles.to_json(), "stages": dumped, "given": dumped, "estimated": {},
-                "note": note, "facts": facts.to_dict()}
+                "note": note, "facts": facts.to_dict(), "streamed": streamed}
     path = scratch / MANIFEST
     path.write_text(json.dumps(manifest))
     storage.put_file(layout.tile_key(job_id, MANIFEST), path, move=True)
     return sorted(tiles.cells)
+
+
+def _stream_leading(storage: Storage, job_id: str, source: Path, stages: list, points: int,
+                    folder: Path, progress: Progress) -> list[dict[str, Any]]:
+    """Stream the leading time-series stages over the input and put their arrays into the
+    job's storage; their statistics (``info``, critical value) for the manifest."""
+    first = run_streamed(source, stages, points, folder, progress=progress)
+    names = [f"{STREAMED}flags.npy", *(f"{STREAMED}score_{name}.npy" for name in first.scores)]
+    entries = jsonable(first.stages)
+    del first
+    for name in names:
+        storage.put_file(layout.tile_key(job_id, name), folder / name[len(STREAMED):],
+                         move=True)
+    shutil.rmtree(folder, ignore_errors=True)
+    return entries
+
+
+def _streamed(storage: Storage, job_id: str, doc: dict[str, Any], stages: list, folder: Path,
+              scores: bool = False) -> Streamed | None:
+    """The arrays of the job's streamed stages, fetched into ``folder`` and mapped (flags;
+    with ``scores`` their scores too); None when the pipeline streamed none."""
+    if not doc.get("streamed"):
+        return None
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def mapped(name: str) -> Any:
+        path = folder / name
+        try:
+            storage.get_file(layout.tile_key(job_id, STREAMED + name), path)
+        except ObjectMissing:
+            raise TileError(f"the streamed stages' {name} is missing") from None
+        return np.load(path, mmap_mode="r")
+
+    lead = len(doc["streamed"])
+    names = [s.detector for s in stages[:lead] if get_detector(s.detector).kind == "outlier"]
+    return Streamed(mapped("flags.npy"),
+                    {n: mapped(f"score_{n}.npy") for n in names} if scores else {},
+                    list(doc["streamed"]))
 
 
 def _manifest(storage: Storage, job_id: str, folder: Path) -> tuple[TileSet, dict[str, Any]]:
@@ -196,7 +250,12 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
         params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
         if tuple(cell) not in tiles.cells:
             raise TileError(f"the job has no tile {cell_name(tuple(cell))}")
-        result = run_tile(tiles, tuple(cell), params, stages, values_of=values_of)
+        first = _streamed(storage, job_id, doc, stages, scratch / "streamed")
+        lead = 0 if first is None else len(first.stages)
+        result = run_tile(tiles, tuple(cell), params, stages[lead:],
+                          values_of=None if values_of is None else values_of - lead,
+                          dropped=None if first is None else first.flags)
+        del first
         path = scratch / (result_name(tuple(cell)) if values_of is None
                           else values_name(values_of, tuple(cell)))
         save_result(path, result)
@@ -260,7 +319,8 @@ def _merge(storage: Storage, job_id: str, job: Any, scratch: Path, progress: Pro
             yield load_result(path)
             path.unlink()
 
-    merged = merge(tiles, results(), stages, params, scratch / "merged")
+    first = _streamed(storage, job_id, doc, stages, scratch / "streamed", scores=True)
+    merged = merge(tiles, results(), stages, params, scratch / "merged", first)
     truth = noise_truth(tiles, params.reference_classes, scratch / "merged")
     suffix = ".laz" if job.laz else ".las"
     source, out = scratch / f"input{suffix}", scratch / f"result{suffix}"
@@ -272,9 +332,11 @@ def _merge(storage: Storage, job_id: str, job: Any, scratch: Path, progress: Pro
     given = list(PipelineParams.model_validate({"pipeline": doc["given"]}).pipeline or [])
     estimated = {int(k): v for k, v in doc.get("estimated", {}).items()}
     stats = tiled_statistics(merged, tiles, stages, params, facts, doc["note"], truth,
-                             estimated, given)
+                             estimated, given, None if first is None else first.stages)
     stats["mode"] = "tiled over workers"
-    del merged, truth
+    if first is not None:
+        stats["streamed"] = {"stages": [s.detector for s in stages[:len(first.stages)]]}
+    del merged, truth, first
     stats = finish_statistics(stats, out, job.laz, None, None)
     statistics = scratch / "statistics.json"
     write_json_atomic(statistics, stats)

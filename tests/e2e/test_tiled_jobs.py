@@ -20,7 +20,7 @@ import pytest
 from lidar_outliers.jobs.store import Store
 from lidar_outliers.process import process_file
 from tests.e2e.stack import RedisServer, Stack, alive, running_stack, wait_for, wait_job
-from tests.lasfiles import tile_scene
+from tests.lasfiles import scanned_tile_scene, tile_scene
 
 SENSOR = [600_012.0, 5_000_012.0, 52.0]
 PIPELINE = {"pipeline": [{"detector": "dror", "origin": SENSOR, "multiplier": 8.0},
@@ -107,6 +107,42 @@ def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, t
             assert remote["info"]["sigma"] == pytest.approx(here["info"]["sigma"], rel=1e-9)
     assert not (stack.data_dir / "jobs" / job / "tiles").exists()
     assert requeues(stack, job) == 0
+
+
+#: temporal first (its scan lines cross every tile), then height_field with sigma estimated
+#: over what temporal left: temporal is streamed by the worker that cuts the tiles, a round of
+#: tiles estimates sigma, a second round runs height_field.
+STREAMED = {"pipeline": [{"detector": "temporal", "max_gap": 0.001},
+                         {"detector": "height_field", "low": False}]}
+
+
+def test_temporal_first_streams_then_tiles_give_the_one_machine_result(stack, key, tmp_path):
+    scanned = scanned_tile_scene(tmp_path / "scanned.las", shuffled=True)
+    job = submit(stack, key, scanned, STREAMED)
+    with stack.client(key) as client:
+        done = wait_job(client, job, ("successful", "failed"), timeout=300)
+        assert done["status"] == "successful", done["message"]
+        out = tmp_path / "service.las"
+        out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
+        stats = client.get(f"/jobs/{job}/results/statistics").json()
+    assert stats["mode"] == "tiled over workers" and stats["streamed"]["stages"] == ["temporal"]
+    local = tmp_path / "local.las"
+    local_stats = process_file(scanned, local, STREAMED)
+    a, b = laspy.read(local), laspy.read(out)
+    assert np.array_equal(a.outlier_flags, b.outlier_flags)
+    for name in ("temporal", "height_field"):
+        x, y = np.asarray(a[f"{name}_score"]), np.asarray(b[f"{name}_score"])
+        assert np.array_equal(np.isnan(x), np.isnan(y))
+        np.testing.assert_allclose(x[~np.isnan(x)], y[~np.isnan(y)], rtol=1e-5, atol=1e-5)
+    assert stats["overall"] == local_stats["overall"]
+    for remote, here in zip(stats["stages"], local_stats["stages"], strict=True):
+        assert here["points_flagged"] > 0
+        assert (remote["points_in"], remote["points_tested"], remote["points_flagged"]) == (
+            here["points_in"], here["points_tested"], here["points_flagged"])
+    assert stats["stages"][0]["info"] == local_stats["stages"][0]["info"]
+    assert stats["stages"][1]["info"]["sigma"] == pytest.approx(
+        local_stats["stages"][1]["info"]["sigma"], rel=1e-9)
+    assert not (stack.data_dir / "jobs" / job / "tiles").exists()
 
 
 def test_transient_job_runs_whole_on_one_worker(stack, key, scene):
