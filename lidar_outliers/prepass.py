@@ -84,9 +84,13 @@ def leading_streamed(stages: list[StageModel]) -> int:
 def run_streamed(
     in_path: Path, stages: list[StageModel], points: int, folder: Path, *,
     chunk_points: int = lasio.DEFAULT_CHUNK_POINTS, progress: Progress | None = None,
+    progress_at: float = 0.1,
 ) -> Streamed:
     """Run ``stages`` (each declared ``streams``) over ``in_path``, one after the other, each
-    on the points the stages before it left; their arrays go to ``folder``."""
+    on the points the stages before it left; their arrays go to ``folder``.
+
+    ``progress(progress_at, message)`` is called for every chunk of every pass (the service
+    cancels a job through it)."""
     started = time.perf_counter()
     folder.mkdir(parents=True, exist_ok=True)
     flags = np.lib.format.open_memmap(folder / "flags.npy", mode="w+", dtype=FLAGS_DTYPE,
@@ -103,13 +107,35 @@ def run_streamed(
         assert isinstance(params, TemporalParameters)
         source = _file_series(in_path, params.group_by, flags if k else None, chunk_points)
         work = folder / f"stage_{k}"
+        report = None if progress is None else _reporter(progress, progress_at, spec.name)
         entry = stream_temporal_stage(source, params, points, work, score, flags,
-                                      FLAGS_DTYPE(spec.flag_bit), chunk_points, progress)
+                                      FLAGS_DTYPE(spec.flag_bit), chunk_points, report)
         shutil.rmtree(work, ignore_errors=True)
         out.scores[spec.name] = score
         out.stages.append(entry)
     out.seconds = time.perf_counter() - started
     return out
+
+
+def _reporter(progress: Progress, at: float, name: str) -> Callable[[str], None]:
+    def report(message: str) -> None:
+        progress(at, f"{name} along time: {message}")
+    return report
+
+
+def _reported(chunks: Chunks, report: Callable[[str], None] | None, what: str,
+              total: int) -> Chunks:
+    """``chunks`` reporting how far the pass is after each chunk."""
+    if report is None:
+        return chunks
+
+    def counted() -> Iterator[np.ndarray]:
+        done = 0
+        for rec in chunks():
+            yield rec
+            done += len(rec)
+            report(f"{what}, {done:,} of {total:,} points")
+    return counted
 
 
 # --------------------------------------------------------------------------- reading
@@ -241,27 +267,29 @@ def _sorted_spans(folder: Path, chunk_points: int) -> Iterator[np.ndarray]:
 def stream_temporal_stage(
     source: Chunks, params: TemporalParameters, points: int, folder: Path, score: np.ndarray,
     flags: np.ndarray, bit: np.unsignedinteger, chunk_points: int,
-    progress: Progress | None = None,
+    report: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """``temporal`` over the points of ``source``: scores into ``score`` and ``bit`` into
     ``flags`` (file order); returns the stage's ``info`` and ``critical_value`` as
-    ``detect_temporal`` gives them on those points."""
+    ``detect_temporal`` gives them on those points. ``report(message)`` after every chunk."""
     p = check_params(params.n1, params.n2, params.sigma, params.alpha, params.max_gap)
-    facts = survey(source)
+    facts = survey(_reported(source, report, "reading", points))
     if facts.points == 0:  # the stages before flagged every point: the stage is skipped
         return {"info": None, "critical_value": None}
     if not facts.valid:
         raise MissingDimensionError("gps_time is all NaN: the temporal detector cannot run")
     folder.mkdir(parents=True, exist_ok=True)
-    ordered = time_ordered(source, facts, folder / "spans", chunk_points)
+    sorting = source if facts.ordered else _reported(source, report, "sorting by time", points)
+    ordered = time_ordered(sorting, facts, folder / "spans", chunk_points)
     groups = sorted(facts.groups)
     if p.max_gap is None:
-        gaps = resolved_gaps(ordered, groups, folder / "steps.bin", chunk_points)
+        gaps = resolved_gaps(_reported(ordered, report, "time steps", facts.valid), groups,
+                             folder / "steps.bin", chunk_points)
     else:
         gaps = {g: p.max_gap for g in groups}
-    if progress is not None:
-        progress(0.05, "temporal (streaming along time)")
-    diffs, index, segments = unit_differences(ordered, params, facts, gaps, folder, p.n1, p.n2)
+    diffs, index, segments = unit_differences(
+        _reported(ordered, report, "smoothing", facts.valid), params, facts, gaps, folder,
+        p.n1, p.n2)
     if p.sigma is None:
         sigma, source_name = sample_sigma(diffs, chunk_points)
     else:

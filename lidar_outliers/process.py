@@ -57,9 +57,10 @@ def process_file(
 
     ``tile_size`` (metres) runs the pipeline tile by tile (:mod:`lidar_outliers.tiling`: the
     same result, memory set by the tile); None tiles files of more than
-    ``WHOLE_CLOUD_POINTS`` points with a tile size chosen from their density. A pipeline with a
-    stage that depends on the whole cloud runs in memory, and the statistics' ``tiling`` says
-    why.
+    ``WHOLE_CLOUD_POINTS`` points with a tile size chosen from their density. Leading stages
+    along the time series (``temporal``) are streamed over the file first
+    (:mod:`lidar_outliers.prepass`). A pipeline with a stage that depends on the whole cloud
+    runs in memory, and the statistics' ``tiling`` says why.
     """
     t0 = time.perf_counter()
     if params is None:

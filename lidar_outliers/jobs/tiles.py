@@ -119,7 +119,7 @@ def _stream_leading(storage: Storage, job_id: str, source: Path, stages: list, p
                     folder: Path, progress: Progress) -> list[dict[str, Any]]:
     """Stream the leading time-series stages over the input and put their arrays into the
     job's storage; their statistics (``info``, critical value) for the manifest."""
-    first = run_streamed(source, stages, points, folder, progress=progress)
+    first = run_streamed(source, stages, points, folder, progress=progress, progress_at=0.05)
     names = [f"{STREAMED}flags.npy", *(f"{STREAMED}score_{name}.npy" for name in first.scores)]
     entries = jsonable(first.stages)
     del first

@@ -38,8 +38,12 @@ def crowded(tmp_path_factory) -> Path:
 def test_streamed_temporal_is_the_whole_clouds(crowded, tmp_path, stage):
     params = PipelineParams.model_validate({"pipeline": [stage]})
     whole = run_pipeline(lasio.read_cloud(crowded), params)
+    said: list[tuple[float, str]] = []
     out = run_streamed(crowded, list(params.pipeline), len(whole.flags), tmp_path / "s",
-                       chunk_points=5_000)
+                       chunk_points=5_000, progress=lambda f, m: said.append((f, m)))
+    assert {f for f, _ in said} == {0.1}
+    assert "temporal along time: sorting by time, 110,000 of 110,000 points" in {
+        m for _, m in said}
     assert np.array_equal(out.flags, whole.flags) and whole.flags.any()
     assert np.array_equal(out.scores["temporal"], whole.scores["temporal"], equal_nan=True)
     info = whole.statistics["stages"][0]["info"]
