@@ -294,9 +294,9 @@ def run_tile(
     (:class:`~lidar_outliers.detectors.base.Estimate`) for the points of the cell: ``index``
     and ``values`` (NaN where none, and for points earlier stages flagged).
 
-    ``dropped``: (points,) ``outlier_flags`` of streamed stages run before (in file order, e.g.
-    a memory map): ``stages`` run on the points it leaves (0), as the whole pipeline runs its
-    later stages, and the result holds those points only (with no stages: as they are).
+    ``dropped``: the sorted file indices of the points streamed stages flagged before
+    (:func:`dropped_points`): ``stages`` run on the other points, as the whole pipeline runs
+    its later stages, and the result holds those only (with no stages: as they are).
     """
     if not stages and values_of is None:
         return _untouched(tiles, cell, params, dropped)
@@ -312,7 +312,7 @@ def run_tile(
         total = float(sum(halos))
         rec, everything = load_region(tiles, cell, total)
         if dropped is not None:
-            rec = rec[np.asarray(dropped[rec["index"]]) == 0]
+            rec = rec[~_among(rec["index"], dropped)]
         cloud = tile_cloud(tiles, rec, local_traj)
         result = run_pipeline(cloud, tile_params) if run else None
         flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
@@ -338,12 +338,27 @@ def run_tile(
     return out
 
 
+def dropped_points(flags: np.ndarray, step: int = 4_000_000) -> np.ndarray:
+    """The sorted indices of the flagged points of ``flags`` (file order, e.g. a memory map),
+    read in pieces: what a tile needs of the streamed stages, 8 bytes a flagged point."""
+    parts = [a + np.flatnonzero(np.asarray(flags[a:a + step])) for a in range(0, len(flags), step)]
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+
+
+def _among(index: np.ndarray, sorted_values: np.ndarray) -> np.ndarray:
+    """(n,) bool: which of ``index`` are in the sorted array ``sorted_values``."""
+    if sorted_values.size == 0:
+        return np.zeros(index.shape, dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_values, index), sorted_values.size - 1)
+    return sorted_values[pos] == index
+
+
 def _untouched(tiles: TileSet, cell: tuple[int, int], params: PipelineParams,
                dropped: np.ndarray | None) -> dict[str, Any]:
     """A tile's result when no stage is left to run: its points' flags 0 and input classes."""
     rec = read_cell(tiles, cell)
     if dropped is not None:
-        rec = rec[np.asarray(dropped[rec["index"]]) == 0]
+        rec = rec[~_among(rec["index"], dropped)]
     out: dict[str, Any] = {"index": rec["index"], "flags": np.zeros(len(rec), FLAGS_DTYPE),
                            "halo": np.float64(0.0), "stages": "[]"}
     if params.classify:
@@ -619,7 +634,7 @@ def process_tiled(
         t_cut = time.perf_counter()
         first = run_streamed(in_path, stages[:lead], tiles.points, work / "streamed",
                              chunk_points=chunk_points, progress=progress) if lead else None
-        dropped = None if first is None else first.flags
+        dropped = None if first is None else dropped_points(first.flags)
         rest = stages[lead:]
         estimated: dict[int, dict[str, Any]] = {}
         while (i := pending_estimate(rest)) is not None:

@@ -53,6 +53,7 @@ from lidar_outliers.tiling import (
     TileSet,
     auto_tile_size,
     cell_name,
+    dropped_points,
     load_result,
     merge,
     noise_truth,
@@ -120,7 +121,9 @@ def _stream_leading(storage: Storage, job_id: str, source: Path, stages: list, p
     """Stream the leading time-series stages over the input and put their arrays into the
     job's storage; their statistics (``info``, critical value) for the manifest."""
     first = run_streamed(source, stages, points, folder, progress=progress, progress_at=0.05)
-    names = [f"{STREAMED}flags.npy", *(f"{STREAMED}score_{name}.npy" for name in first.scores)]
+    np.save(folder / "dropped.npy", dropped_points(first.flags))
+    names = [f"{STREAMED}{name}.npy" for name in ("flags", "dropped",
+                                                   *(f"score_{s}" for s in first.scores))]
     entries = jsonable(first.stages)
     del first
     for name in names:
@@ -130,27 +133,27 @@ def _stream_leading(storage: Storage, job_id: str, source: Path, stages: list, p
     return entries
 
 
-def _streamed(storage: Storage, job_id: str, doc: dict[str, Any], stages: list, folder: Path,
-              scores: bool = False) -> Streamed | None:
-    """The arrays of the job's streamed stages, fetched into ``folder`` and mapped (flags;
-    with ``scores`` their scores too); None when the pipeline streamed none."""
+def _streamed_array(storage: Storage, job_id: str, name: str, folder: Path) -> Any:
+    """One array of the job's streamed stages, fetched into ``folder`` and mapped."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    try:
+        storage.get_file(layout.tile_key(job_id, STREAMED + name), path)
+    except ObjectMissing:
+        raise TileError(f"the streamed stages' {name} is missing") from None
+    return np.load(path, mmap_mode="r")
+
+
+def _streamed(storage: Storage, job_id: str, doc: dict[str, Any], stages: list,
+              folder: Path) -> Streamed | None:
+    """The file-order arrays of the job's streamed stages (None when it streamed none)."""
     if not doc.get("streamed"):
         return None
-    folder.mkdir(parents=True, exist_ok=True)
-
-    def mapped(name: str) -> Any:
-        path = folder / name
-        try:
-            storage.get_file(layout.tile_key(job_id, STREAMED + name), path)
-        except ObjectMissing:
-            raise TileError(f"the streamed stages' {name} is missing") from None
-        return np.load(path, mmap_mode="r")
-
     lead = len(doc["streamed"])
     names = [s.detector for s in stages[:lead] if get_detector(s.detector).kind == "outlier"]
-    return Streamed(mapped("flags.npy"),
-                    {n: mapped(f"score_{n}.npy") for n in names} if scores else {},
-                    list(doc["streamed"]))
+    return Streamed(_streamed_array(storage, job_id, "flags.npy", folder),
+                    {n: _streamed_array(storage, job_id, f"score_{n}.npy", folder)
+                     for n in names}, list(doc["streamed"]))
 
 
 def _manifest(storage: Storage, job_id: str, folder: Path) -> tuple[TileSet, dict[str, Any]]:
@@ -250,12 +253,13 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
         params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
         if tuple(cell) not in tiles.cells:
             raise TileError(f"the job has no tile {cell_name(tuple(cell))}")
-        first = _streamed(storage, job_id, doc, stages, scratch / "streamed")
-        lead = 0 if first is None else len(first.stages)
+        # a tile needs only which points the streamed stages flagged, not their arrays
+        lead = len(doc.get("streamed") or [])
+        dropped = None if not lead else np.asarray(
+            _streamed_array(storage, job_id, "dropped.npy", scratch / "streamed"))
         result = run_tile(tiles, tuple(cell), params, stages[lead:],
                           values_of=None if values_of is None else values_of - lead,
-                          dropped=None if first is None else first.flags)
-        del first
+                          dropped=dropped)
         path = scratch / (result_name(tuple(cell)) if values_of is None
                           else values_name(values_of, tuple(cell)))
         save_result(path, result)
@@ -319,7 +323,7 @@ def _merge(storage: Storage, job_id: str, job: Any, scratch: Path, progress: Pro
             yield load_result(path)
             path.unlink()
 
-    first = _streamed(storage, job_id, doc, stages, scratch / "streamed", scores=True)
+    first = _streamed(storage, job_id, doc, stages, scratch / "streamed")
     merged = merge(tiles, results(), stages, params, scratch / "merged", first)
     truth = noise_truth(tiles, params.reference_classes, scratch / "merged")
     suffix = ".laz" if job.laz else ".las"
