@@ -29,4 +29,6 @@ DETECTOR = Detector(
     needs=("gps_time",),
     # each scanner's time series, no XY neighbourhood: streamed along time before any tiles
     streams=True,
+    whole_cloud=("its scanners' time series cross every tile: in a tiled run it is streamed "
+                 "along time, at the start of the pipeline only"),
 )

@@ -544,6 +544,34 @@ def test_stream_auto_resolves_from_warmup():
         np.testing.assert_array_equal(score[m], batch.score)
 
 
+def test_stream_differences_with_the_batch_gaps_give_the_batch_auto_result():
+    """Given each group's max_gap as the batch resolves it, the unit differences a stream
+    returns give the batch's sigma (from the same sample) and its scores, bit for bit."""
+    from algorithms.temporal.batch import estimate_sigma, scores_from_differences
+
+    xyz, t, group = _stream_data(6000, seed=23)
+    batch = detect_temporal(xyz, t, group)
+    gaps = {int(g): v for g, v in batch.info["max_gap_by_group"].items()}
+    stream = TemporalStream(sigma=1.0, max_gap_by_group=gaps, differences=True)
+    diffs = np.full((t.size, 4), -1.0)
+    for a in range(0, t.size, 700):
+        idx, d = stream.push(xyz[a:a + 700], t[a:a + 700], group[a:a + 700],
+                             np.arange(a, min(a + 700, t.size)))
+        diffs[idx] = d
+    idx, d = stream.finish()
+    diffs[idx] = d
+    assert not np.any(diffs == -1.0)
+    valid = np.isfinite(t)
+    order = np.lexsort((t[valid], group[valid]))  # the batch's (scanner, time) order
+    rows = diffs[valid][order]
+    sigma, source = estimate_sigma(rows[:, :3], rows[:, 3])
+    assert source == batch.info["sigma_source"]
+    assert [batch.info["sigma"][a] for a in "xyz"] == sigma.tolist()
+    score = scores_from_differences(diffs[:, :3], diffs[:, 3], sigma)
+    np.testing.assert_array_equal(score, batch.score)
+    assert stream.info["segments"] == batch.info["segments"]
+
+
 def test_stream_refuses_unsorted_time_within_group():
     stream = TemporalStream(sigma=0.01, max_gap=1.0)
     xyz = np.zeros((3, 3))
