@@ -21,8 +21,10 @@ Defaults (measured on the simulated clouds A, B, C, see ``benchmarks/bench_mobil
 ``radius`` 6 mm (two range-noise sigmas: a 2 cm tube let beams skimming car edges "see through"
 the edge points, 0.1-0.2 % false alarms), ``margin`` 8 cm (mist 3 cm above a puddle is still
 seen through by beams ending beyond it; at 4 cm beams grazing the ground start to count), one
-beam is enough. The margin assumes beams meet the ground steeper than about 5 degrees (within
-~25 m of a roof-mounted scanner); for longer ranges raise it.
+beam is enough. ``margin`` is the least: a beam that meets the surface at its end at a grazing
+angle g runs within ``radius`` of that surface's own points over its last (radius + 8 x
+roughness) / sin g metres, so its margin grows to that (:func:`grazing_margins`; range noise
+over the sine of the incidence angle), whatever the range and the mounting.
 """
 
 from __future__ import annotations
@@ -36,6 +38,17 @@ from algorithms.transient import TransientParameters
 
 #: Largest number of grid cells before the cell edge is doubled (memory of the cell index).
 MAX_CELLS = 60_000_000
+#: Points (the return itself included) whose plane gives the surface at a beam's end.
+SURFACE_NEIGHBOURS = 10
+#: Points per batch of surface fits (bounds memory to ~100 MB).
+NORMAL_BATCH = 200_000
+#: How far apart two points of one surface may lie across it, in multiples of its roughness
+#: (the difference of two offsets has sigma r sqrt 2: about 6 sigmas of it, for millions of
+#: beam and point pairs, and a roughness estimated from few points).
+ROUGHNESS_SPAN = 8.0
+#: Beams flatter than this to the surface at their end are taken at this angle (sin 1 deg:
+#: a beam's last (radius + 8 r) / 0.017 metres, about 0.35 m for r = 0, are no evidence).
+MIN_GRAZING_DEGREES = 1.0
 
 
 def scanner_origins(
@@ -185,7 +198,8 @@ def _clip(o, d, lo, hi, s_max):
 
 @njit(cache=True)
 def _beam_hits(i, o, p, xyz, lo, cell, shape, start, members, radius, margin, seen, counts):
-    """Walk the grid cells of beam i (exact 3D DDA) and count each point it saw through once."""
+    """Walk the grid cells of beam i (exact 3D DDA) and count each point it saw through once
+    (``margin``: this beam's own)."""
     d = p - o
     length = np.sqrt((d * d).sum())
     stop = length - margin
@@ -247,8 +261,9 @@ def _beam_hits(i, o, p, xyz, lo, cell, shape, start, members, radius, margin, se
 
 
 @njit(cache=True, parallel=True)
-def _march(xyz, origin, lo, cell, shape, start, members, radius, margin, n_chunks):
-    """(n_chunks, n) per-chunk counts of the beams that saw through each point."""
+def _march(xyz, origin, lo, cell, shape, start, members, radius, margins, n_chunks):
+    """(n_chunks, n) per-chunk counts of the beams that saw through each point (``margins``:
+    (n,) each beam's)."""
     n = xyz.shape[0]
     counts = np.zeros((n_chunks, n), np.int32)
     size = (n + n_chunks - 1) // n_chunks
@@ -256,25 +271,81 @@ def _march(xyz, origin, lo, cell, shape, start, members, radius, margin, n_chunk
         seen = np.empty(4096, np.int64)
         for i in range(c * size, min(n, (c + 1) * size)):
             _beam_hits(i, origin[i], xyz[i], xyz, lo, cell, shape, start, members, radius,
-                       margin, seen, counts[c])
+                       margins[i], seen, counts[c])
     return counts
 
 
 def see_through_counts(
-    xyz: np.ndarray, origin: np.ndarray, *, radius: float = 0.006, margin: float = 0.08,
-    cell: float = 0.1,
+    xyz: np.ndarray, origin: np.ndarray, *, radius: float = 0.006,
+    margin: float | np.ndarray = 0.08, cell: float = 0.1,
 ) -> np.ndarray:
     """(n,) number of beams o_i -> p_i that passed within ``radius`` of each point and ended more
-    than ``margin`` beyond it (each beam counts a point at most once).
+    than ``margin`` beyond it (each beam counts a point at most once). ``margin``: one for
+    every beam, or (n,) each beam's own (:func:`grazing_margins`).
     """
     centre = xyz.mean(axis=0)
     local = xyz - centre
     o = origin - centre
+    margins = np.broadcast_to(np.asarray(margin, dtype=np.float64), (len(xyz),))
     lo, cell, shape = _grid(local, cell, radius)
     start, members = _cell_index(local, lo, cell, shape, radius)
     n_chunks = 8
-    counts = _march(local, o, lo, cell, shape, start, members, radius, margin, n_chunks)
+    counts = _march(local, o, lo, cell, shape, start, members, radius,
+                    np.ascontiguousarray(margins), n_chunks)
     return counts.sum(axis=0)
+
+
+def surface_at_points(xyz: np.ndarray, k: int = SURFACE_NEIGHBOURS
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) unit normal and (n,) roughness (metres) of the surface around each point.
+
+    The plane of its k nearest points (itself included): the normal is the covariance's
+    eigenvector of the smallest eigenvalue, the roughness that eigenvalue's square root (the
+    scatter of the points across the plane: range noise, texture). Fewer than 3 points: no
+    surface (NaN).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    normal = np.full((n, 3), np.nan)
+    rough = np.full(n, np.nan)
+    kk = min(k, n)
+    if kk < 3:
+        return normal, rough
+    local = xyz - xyz.mean(axis=0)
+    tree = cKDTree(local)
+    for s in range(0, n, NORMAL_BATCH):
+        _, idx = tree.query(local[s:s + NORMAL_BATCH], k=kk, workers=-1)
+        nb = local[idx.reshape(-1, kk)]
+        nb = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", nb, nb) / kk
+        value, vector = np.linalg.eigh(cov)
+        normal[s:s + len(nb)] = vector[:, :, 0]
+        rough[s:s + len(nb)] = np.sqrt(np.maximum(value[:, 0], 0.0))
+    return normal, rough
+
+
+def grazing_margins(xyz: np.ndarray, origin: np.ndarray, *, radius: float,
+                    margin: float) -> np.ndarray:
+    """(n,) how far before its return each beam stops counting as evidence.
+
+    A beam meeting a surface at angle g (between the beam and the surface's plane) runs
+    ``s sin g`` above that surface ``s`` metres before its end, so it passes within ``radius``
+    of the surface's own points (each off the plane by its roughness r, so two of them differ
+    by up to about 8 r) over the last (radius + 8 r) / sin g metres: no evidence against them.
+    Each beam's margin is the larger of ``margin`` and that length, with g at least
+    ``MIN_GRAZING_DEGREES`` (range noise divided by the sine of the incidence: at grazing
+    incidence on a facade a fixed margin lets beams see through the facade's own points).
+    Where the end has no surface (NaN normal) the beam keeps ``margin``.
+    """
+    normal, rough = surface_at_points(xyz)
+    beam = xyz - origin
+    length = np.linalg.norm(beam, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sin_g = np.abs(np.einsum("ij,ij->i", beam, normal)) / length
+    sin_g = np.maximum(sin_g, np.sin(np.radians(MIN_GRAZING_DEGREES)))
+    along = (radius + ROUGHNESS_SPAN * rough) / sin_g
+    return np.where(np.isfinite(along), np.maximum(along, margin), margin)
 
 
 def detect_free_space(
@@ -286,6 +357,9 @@ def detect_free_space(
     min_rays: int = 1,
 ) -> DetectorResult:
     """Flag points that at least ``min_rays`` other beams saw through (module docstring).
+
+    Each beam stops counting ``margin`` before its return, or longer where it meets the surface
+    there at a grazing angle (:func:`grazing_margins`).
 
     xyz (n, 3) and origin (n, 3) metres (the scanner position of each point's beam). Score (n,)
     = the see-through count; flagged = score >= min_rays; critical_value = min_rays.
@@ -299,8 +373,11 @@ def detect_free_space(
         raise ParameterError("xyz or origin holds NaN or infinite values")
     TransientParameters(free_space_radius=radius, free_space_margin=margin,
                         free_space_min_rays=min_rays)
-    score = see_through_counts(arr, org, radius=radius, margin=margin).astype(np.float64)
+    margins = grazing_margins(arr, org, radius=radius, margin=margin)
+    score = see_through_counts(arr, org, radius=radius, margin=margins).astype(np.float64)
     flagged = score >= min_rays
     info = {"radius": radius, "margin": margin, "min_rays": int(min_rays), "points": len(arr),
-            "points_tested": len(arr), "points_flagged": int(flagged.sum())}
+            "points_tested": len(arr), "points_flagged": int(flagged.sum()),
+            "beam_margin_median": float(np.median(margins)) if len(arr) else margin,
+            "beams_with_grazing_margin": int(np.count_nonzero(margins > margin))}
     return DetectorResult(score=score, flagged=flagged, critical_value=float(min_rays), info=info)
