@@ -355,11 +355,19 @@ def detect_free_space(
     radius: float = 0.006,
     margin: float = 0.08,
     min_rays: int = 1,
+    seen_again: np.ndarray | None = None,
 ) -> DetectorResult:
     """Flag points that at least ``min_rays`` other beams saw through (module docstring).
 
     Each beam stops counting ``margin`` before its return, or longer where it meets the surface
     there at a grazing angle (:func:`grazing_margins`).
+
+    ``seen_again`` (n,) bool: the points recorded again at another moment (persistent, as
+    :func:`algorithms.transient.persistent_points` finds them). A beam and a point in conflict
+    cannot both be right; the one seen again wins: such a point was there at two moments, so it
+    is static and not flagged, and only beams whose own return was seen again count as evidence
+    (a return seen once may be a multipath echo at a false range, whose beam "passes" through
+    the real surface in front of it). None: every point may be flagged, every beam counts.
 
     xyz (n, 3) and origin (n, 3) metres (the scanner position of each point's beam). Score (n,)
     = the see-through count; flagged = score >= min_rays; critical_value = min_rays.
@@ -374,10 +382,17 @@ def detect_free_space(
     TransientParameters(free_space_radius=radius, free_space_margin=margin,
                         free_space_min_rays=min_rays)
     margins = grazing_margins(arr, org, radius=radius, margin=margin)
+    if seen_again is not None:
+        margins = np.where(seen_again, margins, np.inf)  # a beam with no evidence: never counts
     score = see_through_counts(arr, org, radius=radius, margin=margins).astype(np.float64)
     flagged = score >= min_rays
+    if seen_again is not None:
+        flagged &= ~seen_again
     info = {"radius": radius, "margin": margin, "min_rays": int(min_rays), "points": len(arr),
             "points_tested": len(arr), "points_flagged": int(flagged.sum()),
-            "beam_margin_median": float(np.median(margins)) if len(arr) else margin,
-            "beams_with_grazing_margin": int(np.count_nonzero(margins > margin))}
+            "beam_margin_median": (float(np.median(margins[np.isfinite(margins)]))
+                                   if np.isfinite(margins).any() else margin),
+            "beams_with_grazing_margin": int(np.count_nonzero(np.isfinite(margins)
+                                                              & (margins > margin))),
+            "beams_counted": int(np.count_nonzero(np.isfinite(margins)))}
     return DetectorResult(score=score, flagged=flagged, critical_value=float(min_rays), info=info)

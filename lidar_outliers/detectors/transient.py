@@ -30,7 +30,7 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
     if cloud.trajectory is None:
         result.info["free_space"] = "no trajectory file given"
         return result
-    seen_through, fs_info = _free_space(cloud, gps_time, params)
+    seen_through, fs_info = _free_space(cloud, gps_time, params, result.score == 0.0)
     clusters = np.asarray(result.flagged, dtype=bool)
     flagged = clusters | seen_through
     score = np.where(seen_through, np.maximum(result.score, 2.0), result.score)
@@ -46,9 +46,11 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
 
 
 def _free_space(
-    cloud: Cloud, gps_time: np.ndarray, params: TransientParameters
+    cloud: Cloud, gps_time: np.ndarray, params: TransientParameters, persistent: np.ndarray
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """(n,) bool seen-through points and the info, on the points the trajectory's time covers."""
+    """(n,) bool seen-through points and the info, on the points the trajectory's time covers;
+    ``persistent``: the points the cluster test found recorded again at another moment (they
+    win a conflict with a beam, :func:`algorithms.free_space.detect_free_space`)."""
     from algorithms.free_space import detect_free_space, scanner_origins
 
     traj = cloud.trajectory
@@ -65,7 +67,8 @@ def _free_space(
     index = np.flatnonzero(covered)
     origin = scanner_origins(gps_time[index], cloud.point_source_id[index], traj, arms)
     fs = detect_free_space(cloud.xyz[index], origin, radius=params.free_space_radius,
-                           margin=params.free_space_margin, min_rays=params.free_space_min_rays)
+                           margin=params.free_space_margin, min_rays=params.free_space_min_rays,
+                           seen_again=persistent[index])
     seen = np.zeros(len(cloud), dtype=bool)
     seen[index] = fs.flagged
     listed = np.isin(cloud.point_source_id[index], list(arms))

@@ -185,3 +185,25 @@ def test_grazing_margin_is_radius_and_roughness_over_the_sine():
     want = 0.006 / np.sin(np.radians(3.0))
     got = grazing_margins(xyz, flat, radius=0.006, margin=0.0)
     np.testing.assert_allclose(got, want, rtol=1e-3)
+
+
+def test_a_point_seen_again_wins_over_the_beam_through_it():
+    """A multipath echo at a false range behind a wall: its beam passes through the wall's
+    points. Those were recorded again at another moment (static), so they stay and the beam,
+    whose own return nobody saw again, is no evidence; without that knowledge the wall is
+    flagged."""
+    rng = np.random.default_rng(8)
+    xyz, origin, floating = wall_scene(rng)
+    wall_point = 10
+    echo = origin[0] + 1.5 * (xyz[wall_point] - origin[0])  # straight through it, 1.5x range
+    xyz = np.vstack([xyz, echo])
+    origin = np.vstack([origin, origin[0]])
+    echo_i = len(xyz) - 1
+    blind = detect_free_space(xyz, origin, radius=0.01)
+    assert blind.flagged[wall_point]
+    again = np.ones(len(xyz), bool)
+    again[floating] = again[echo_i] = False
+    res = detect_free_space(xyz, origin, radius=0.01, seen_again=again)
+    assert not res.flagged[wall_point]
+    assert not res.flagged[again].any()
+    assert res.info["beams_counted"] == int(again.sum())

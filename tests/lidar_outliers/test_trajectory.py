@@ -60,9 +60,10 @@ def test_default_lever_arms_are_the_simulators():
 
 
 def test_transient_with_trajectory_is_clusters_or_free_space():
-    """The registry's transient = detect_transient OR detect_free_space on the same origins,
-    computed here directly; and the cloud's local frame is honoured (origin shifted)."""
-    sim = simulate("A", 1, 0.01)
+    """The registry's transient = detect_transient OR detect_free_space on the same origins
+    (the points detect_transient found persistent seen again), computed here directly; and the
+    cloud's local frame is honoured (origin shifted)."""
+    sim = simulate("A", 1, 0.04)
     shift = np.array([500.0, -200.0, 30.0])  # the local frame: xyz + origin = file coordinates
     traj_local = sim.trajectory - np.r_[0.0, shift]
     n = len(sim.xyz)
@@ -74,8 +75,9 @@ def test_transient_with_trajectory_is_clusters_or_free_space():
 
     arms = {int(a[0]): tuple(a[1:]) for a in params.lever_arms}
     origin = scanner_origins(sim.gps_time, sim.point_source_id, sim.trajectory, arms)
-    free = detect_free_space(sim.xyz, origin).flagged
-    clusters = detect_transient(sim.xyz, sim.gps_time, sim.point_source_id).flagged
+    found = detect_transient(sim.xyz, sim.gps_time, sim.point_source_id)
+    clusters = found.flagged
+    free = detect_free_space(sim.xyz, origin, seen_again=found.score == 0).flagged
     np.testing.assert_array_equal(result.flagged, clusters | free)
     assert result.info["points_flagged_by_free_space"] == int(free.sum()) > 0
     assert result.info["points_flagged_by_clusters"] == int(clusters.sum())
