@@ -38,6 +38,8 @@ from algorithms.transient import TransientParameters
 
 #: Largest number of grid cells before the cell edge is doubled (memory of the cell index).
 MAX_CELLS = 60_000_000
+#: Metres of path over which the vehicle's heading is taken (:func:`_headings`).
+HEADING_BASELINE = 1.0
 #: Points (the return itself included) whose plane gives the surface at a beam's end.
 SURFACE_NEIGHBOURS = 10
 #: Points per batch of surface fits (bounds memory to ~100 MB).
@@ -64,17 +66,7 @@ def scanner_origins(
     metres in the vehicle frame. The heading is the direction of the horizontal motion between
     trajectory samples, carried over stops (a standing vehicle keeps its last heading).
     """
-    traj = np.asarray(trajectory, dtype=np.float64)
-    if traj.ndim != 2 or traj.shape[1] != 4 or len(traj) < 2:
-        raise ParameterError("trajectory must have rows of time x y z (at least two)")
-    tt = traj[:, 0]
-    if np.any(np.diff(tt) <= 0):
-        raise ParameterError("trajectory times must increase strictly")
-    heading = _headings(traj)
-    pos = np.column_stack([np.interp(gps_time, tt, traj[:, c]) for c in (1, 2, 3)])
-    # nearest sample's heading (interpolating angles across the wrap is not needed here)
-    j = np.clip(np.searchsorted(tt, gps_time), 0, len(tt) - 1)
-    h = heading[j]
+    pos, h = vehicle_pose(gps_time, trajectory)
     fwd = np.column_stack([np.cos(h), np.sin(h)])
     left = np.column_stack([-np.sin(h), np.cos(h)])
     arm = np.zeros((len(gps_time), 3))
@@ -85,19 +77,42 @@ def scanner_origins(
     return pos + arm
 
 
+def vehicle_pose(gps_time: np.ndarray, trajectory: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) reference point and (n,) heading (radians) of the vehicle at each time: positions
+    interpolated, the heading of the nearest sample (:func:`_headings`)."""
+    traj = np.asarray(trajectory, dtype=np.float64)
+    if traj.ndim != 2 or traj.shape[1] != 4 or len(traj) < 2:
+        raise ParameterError("trajectory must have rows of time x y z (at least two)")
+    tt = traj[:, 0]
+    if np.any(np.diff(tt) <= 0):
+        raise ParameterError("trajectory times must increase strictly")
+    heading = _headings(traj)
+    pos = np.column_stack([np.interp(gps_time, tt, traj[:, c]) for c in (1, 2, 3)])
+    # nearest sample's heading (interpolating angles across the wrap is not needed here)
+    j = np.clip(np.searchsorted(tt, gps_time), 0, len(tt) - 1)
+    return pos, heading[j]
+
+
 def _headings(traj: np.ndarray) -> np.ndarray:
-    """Heading (radians) at each trajectory sample from the horizontal motion, kept over stops."""
-    d = np.diff(traj[:, 1:3], axis=0)
-    moving = np.hypot(d[:, 0], d[:, 1]) > 1e-6
-    ang = np.arctan2(d[:, 1], d[:, 0])
-    if not moving.any():
+    """Heading (radians) at each trajectory sample from the horizontal motion, kept over stops.
+
+    The direction from the path's point ``HEADING_BASELINE`` / 2 metres behind the sample to
+    the one as far ahead (by distance travelled): trajectory positions are rounded and noisy at
+    the millimetre level, so two samples a few centimetres apart (a creeping vehicle) would
+    give a heading degrees off, turning far beams by as many decimetres. Over a stop the
+    window spans the motion before and after it.
+    """
+    step = np.hypot(*np.diff(traj[:, 1:3], axis=0).T)
+    if not np.any(step > 1e-6):
         return np.zeros(len(traj))
-    idx = np.where(moving, np.arange(len(d)), -1)
-    idx = np.maximum.accumulate(idx)
-    first = np.argmax(moving)
-    idx[idx < 0] = first
-    ang = ang[idx]
-    return np.append(ang, ang[-1])
+    travelled = np.concatenate([[0.0], np.cumsum(step)])
+    half = min(HEADING_BASELINE, float(travelled[-1])) / 2
+    back = np.searchsorted(travelled, travelled - half, side="right") - 1
+    ahead = np.searchsorted(travelled, travelled + half, side="left")
+    back = np.clip(back, 0, len(traj) - 1)
+    ahead = np.clip(ahead, 0, len(traj) - 1)
+    d = traj[ahead, 1:3] - traj[back, 1:3]
+    return np.arctan2(d[:, 1], d[:, 0])
 
 
 def _grid(xyz: np.ndarray, cell: float, radius: float) -> tuple[np.ndarray, float, np.ndarray]:
@@ -356,6 +371,7 @@ def detect_free_space(
     margin: float = 0.08,
     min_rays: int = 1,
     seen_again: np.ndarray | None = None,
+    beams: np.ndarray | None = None,
 ) -> DetectorResult:
     """Flag points that at least ``min_rays`` other beams saw through (module docstring).
 
@@ -368,6 +384,7 @@ def detect_free_space(
     is static and not flagged, and only beams whose own return was seen again count as evidence
     (a return seen once may be a multipath echo at a false range, whose beam "passes" through
     the real surface in front of it). None: every point may be flagged, every beam counts.
+    ``beams`` (n,) bool: the points whose beam origin is known (others' beams never count).
 
     xyz (n, 3) and origin (n, 3) metres (the scanner position of each point's beam). Score (n,)
     = the see-through count; flagged = score >= min_rays; critical_value = min_rays.
@@ -384,6 +401,8 @@ def detect_free_space(
     margins = grazing_margins(arr, org, radius=radius, margin=margin)
     if seen_again is not None:
         margins = np.where(seen_again, margins, np.inf)  # a beam with no evidence: never counts
+    if beams is not None:
+        margins = np.where(beams, margins, np.inf)
     score = see_through_counts(arr, org, radius=radius, margin=margins).astype(np.float64)
     flagged = score >= min_rays
     if seen_again is not None:
