@@ -21,8 +21,10 @@ Defaults (measured on the simulated clouds A, B, C, see ``benchmarks/bench_mobil
 ``radius`` 6 mm (two range-noise sigmas: a 2 cm tube let beams skimming car edges "see through"
 the edge points, 0.1-0.2 % false alarms), ``margin`` 8 cm (mist 3 cm above a puddle is still
 seen through by beams ending beyond it; at 4 cm beams grazing the ground start to count), one
-beam is enough. The margin assumes beams meet the ground steeper than about 5 degrees (within
-~25 m of a roof-mounted scanner); for longer ranges raise it.
+beam is enough. ``margin`` is the least: a beam that meets the surface at its end at a grazing
+angle g runs within ``radius`` of that surface's own points over its last (radius + 8 x
+roughness) / sin g metres, so its margin grows to that (:func:`grazing_margins`; range noise
+over the sine of the incidence angle), whatever the range and the mounting.
 """
 
 from __future__ import annotations
@@ -36,6 +38,19 @@ from algorithms.transient import TransientParameters
 
 #: Largest number of grid cells before the cell edge is doubled (memory of the cell index).
 MAX_CELLS = 60_000_000
+#: Metres of path over which the vehicle's heading is taken (:func:`_headings`).
+HEADING_BASELINE = 1.0
+#: Points (the return itself included) whose plane gives the surface at a beam's end.
+SURFACE_NEIGHBOURS = 10
+#: Points per batch of surface fits (bounds memory to ~100 MB).
+NORMAL_BATCH = 200_000
+#: How far apart two points of one surface may lie across it, in multiples of its roughness
+#: (the difference of two offsets has sigma r sqrt 2: about 6 sigmas of it, for millions of
+#: beam and point pairs, and a roughness estimated from few points).
+ROUGHNESS_SPAN = 8.0
+#: Beams flatter than this to the surface at their end are taken at this angle (sin 1 deg:
+#: a beam's last (radius + 8 r) / 0.017 metres, about 0.35 m for r = 0, are no evidence).
+MIN_GRAZING_DEGREES = 1.0
 
 
 def scanner_origins(
@@ -51,17 +66,7 @@ def scanner_origins(
     metres in the vehicle frame. The heading is the direction of the horizontal motion between
     trajectory samples, carried over stops (a standing vehicle keeps its last heading).
     """
-    traj = np.asarray(trajectory, dtype=np.float64)
-    if traj.ndim != 2 or traj.shape[1] != 4 or len(traj) < 2:
-        raise ParameterError("trajectory must have rows of time x y z (at least two)")
-    tt = traj[:, 0]
-    if np.any(np.diff(tt) <= 0):
-        raise ParameterError("trajectory times must increase strictly")
-    heading = _headings(traj)
-    pos = np.column_stack([np.interp(gps_time, tt, traj[:, c]) for c in (1, 2, 3)])
-    # nearest sample's heading (interpolating angles across the wrap is not needed here)
-    j = np.clip(np.searchsorted(tt, gps_time), 0, len(tt) - 1)
-    h = heading[j]
+    pos, h = vehicle_pose(gps_time, trajectory)
     fwd = np.column_stack([np.cos(h), np.sin(h)])
     left = np.column_stack([-np.sin(h), np.cos(h)])
     arm = np.zeros((len(gps_time), 3))
@@ -72,19 +77,42 @@ def scanner_origins(
     return pos + arm
 
 
+def vehicle_pose(gps_time: np.ndarray, trajectory: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) reference point and (n,) heading (radians) of the vehicle at each time: positions
+    interpolated, the heading of the nearest sample (:func:`_headings`)."""
+    traj = np.asarray(trajectory, dtype=np.float64)
+    if traj.ndim != 2 or traj.shape[1] != 4 or len(traj) < 2:
+        raise ParameterError("trajectory must have rows of time x y z (at least two)")
+    tt = traj[:, 0]
+    if np.any(np.diff(tt) <= 0):
+        raise ParameterError("trajectory times must increase strictly")
+    heading = _headings(traj)
+    pos = np.column_stack([np.interp(gps_time, tt, traj[:, c]) for c in (1, 2, 3)])
+    # nearest sample's heading (interpolating angles across the wrap is not needed here)
+    j = np.clip(np.searchsorted(tt, gps_time), 0, len(tt) - 1)
+    return pos, heading[j]
+
+
 def _headings(traj: np.ndarray) -> np.ndarray:
-    """Heading (radians) at each trajectory sample from the horizontal motion, kept over stops."""
-    d = np.diff(traj[:, 1:3], axis=0)
-    moving = np.hypot(d[:, 0], d[:, 1]) > 1e-6
-    ang = np.arctan2(d[:, 1], d[:, 0])
-    if not moving.any():
+    """Heading (radians) at each trajectory sample from the horizontal motion, kept over stops.
+
+    The direction from the path's point ``HEADING_BASELINE`` / 2 metres behind the sample to
+    the one as far ahead (by distance travelled): trajectory positions are rounded and noisy at
+    the millimetre level, so two samples a few centimetres apart (a creeping vehicle) would
+    give a heading degrees off, turning far beams by as many decimetres. Over a stop the
+    window spans the motion before and after it.
+    """
+    step = np.hypot(*np.diff(traj[:, 1:3], axis=0).T)
+    if not np.any(step > 1e-6):
         return np.zeros(len(traj))
-    idx = np.where(moving, np.arange(len(d)), -1)
-    idx = np.maximum.accumulate(idx)
-    first = np.argmax(moving)
-    idx[idx < 0] = first
-    ang = ang[idx]
-    return np.append(ang, ang[-1])
+    travelled = np.concatenate([[0.0], np.cumsum(step)])
+    half = min(HEADING_BASELINE, float(travelled[-1])) / 2
+    back = np.searchsorted(travelled, travelled - half, side="right") - 1
+    ahead = np.searchsorted(travelled, travelled + half, side="left")
+    back = np.clip(back, 0, len(traj) - 1)
+    ahead = np.clip(ahead, 0, len(traj) - 1)
+    d = traj[ahead, 1:3] - traj[back, 1:3]
+    return np.arctan2(d[:, 1], d[:, 0])
 
 
 def _grid(xyz: np.ndarray, cell: float, radius: float) -> tuple[np.ndarray, float, np.ndarray]:
@@ -185,7 +213,8 @@ def _clip(o, d, lo, hi, s_max):
 
 @njit(cache=True)
 def _beam_hits(i, o, p, xyz, lo, cell, shape, start, members, radius, margin, seen, counts):
-    """Walk the grid cells of beam i (exact 3D DDA) and count each point it saw through once."""
+    """Walk the grid cells of beam i (exact 3D DDA) and count each point it saw through once
+    (``margin``: this beam's own)."""
     d = p - o
     length = np.sqrt((d * d).sum())
     stop = length - margin
@@ -247,8 +276,9 @@ def _beam_hits(i, o, p, xyz, lo, cell, shape, start, members, radius, margin, se
 
 
 @njit(cache=True, parallel=True)
-def _march(xyz, origin, lo, cell, shape, start, members, radius, margin, n_chunks):
-    """(n_chunks, n) per-chunk counts of the beams that saw through each point."""
+def _march(xyz, origin, lo, cell, shape, start, members, radius, margins, n_chunks):
+    """(n_chunks, n) per-chunk counts of the beams that saw through each point (``margins``:
+    (n,) each beam's)."""
     n = xyz.shape[0]
     counts = np.zeros((n_chunks, n), np.int32)
     size = (n + n_chunks - 1) // n_chunks
@@ -256,25 +286,81 @@ def _march(xyz, origin, lo, cell, shape, start, members, radius, margin, n_chunk
         seen = np.empty(4096, np.int64)
         for i in range(c * size, min(n, (c + 1) * size)):
             _beam_hits(i, origin[i], xyz[i], xyz, lo, cell, shape, start, members, radius,
-                       margin, seen, counts[c])
+                       margins[i], seen, counts[c])
     return counts
 
 
 def see_through_counts(
-    xyz: np.ndarray, origin: np.ndarray, *, radius: float = 0.006, margin: float = 0.08,
-    cell: float = 0.1,
+    xyz: np.ndarray, origin: np.ndarray, *, radius: float = 0.006,
+    margin: float | np.ndarray = 0.08, cell: float = 0.1,
 ) -> np.ndarray:
     """(n,) number of beams o_i -> p_i that passed within ``radius`` of each point and ended more
-    than ``margin`` beyond it (each beam counts a point at most once).
+    than ``margin`` beyond it (each beam counts a point at most once). ``margin``: one for
+    every beam, or (n,) each beam's own (:func:`grazing_margins`).
     """
     centre = xyz.mean(axis=0)
     local = xyz - centre
     o = origin - centre
+    margins = np.broadcast_to(np.asarray(margin, dtype=np.float64), (len(xyz),))
     lo, cell, shape = _grid(local, cell, radius)
     start, members = _cell_index(local, lo, cell, shape, radius)
     n_chunks = 8
-    counts = _march(local, o, lo, cell, shape, start, members, radius, margin, n_chunks)
+    counts = _march(local, o, lo, cell, shape, start, members, radius,
+                    np.ascontiguousarray(margins), n_chunks)
     return counts.sum(axis=0)
+
+
+def surface_at_points(xyz: np.ndarray, k: int = SURFACE_NEIGHBOURS
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) unit normal and (n,) roughness (metres) of the surface around each point.
+
+    The plane of its k nearest points (itself included): the normal is the covariance's
+    eigenvector of the smallest eigenvalue, the roughness that eigenvalue's square root (the
+    scatter of the points across the plane: range noise, texture). Fewer than 3 points: no
+    surface (NaN).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    normal = np.full((n, 3), np.nan)
+    rough = np.full(n, np.nan)
+    kk = min(k, n)
+    if kk < 3:
+        return normal, rough
+    local = xyz - xyz.mean(axis=0)
+    tree = cKDTree(local)
+    for s in range(0, n, NORMAL_BATCH):
+        _, idx = tree.query(local[s:s + NORMAL_BATCH], k=kk, workers=-1)
+        nb = local[idx.reshape(-1, kk)]
+        nb = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", nb, nb) / kk
+        value, vector = np.linalg.eigh(cov)
+        normal[s:s + len(nb)] = vector[:, :, 0]
+        rough[s:s + len(nb)] = np.sqrt(np.maximum(value[:, 0], 0.0))
+    return normal, rough
+
+
+def grazing_margins(xyz: np.ndarray, origin: np.ndarray, *, radius: float,
+                    margin: float) -> np.ndarray:
+    """(n,) how far before its return each beam stops counting as evidence.
+
+    A beam meeting a surface at angle g (between the beam and the surface's plane) runs
+    ``s sin g`` above that surface ``s`` metres before its end, so it passes within ``radius``
+    of the surface's own points (each off the plane by its roughness r, so two of them differ
+    by up to about 8 r) over the last (radius + 8 r) / sin g metres: no evidence against them.
+    Each beam's margin is the larger of ``margin`` and that length, with g at least
+    ``MIN_GRAZING_DEGREES`` (range noise divided by the sine of the incidence: at grazing
+    incidence on a facade a fixed margin lets beams see through the facade's own points).
+    Where the end has no surface (NaN normal) the beam keeps ``margin``.
+    """
+    normal, rough = surface_at_points(xyz)
+    beam = xyz - origin
+    length = np.linalg.norm(beam, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sin_g = np.abs(np.einsum("ij,ij->i", beam, normal)) / length
+    sin_g = np.maximum(sin_g, np.sin(np.radians(MIN_GRAZING_DEGREES)))
+    along = (radius + ROUGHNESS_SPAN * rough) / sin_g
+    return np.where(np.isfinite(along), np.maximum(along, margin), margin)
 
 
 def detect_free_space(
@@ -284,8 +370,21 @@ def detect_free_space(
     radius: float = 0.006,
     margin: float = 0.08,
     min_rays: int = 1,
+    seen_again: np.ndarray | None = None,
+    beams: np.ndarray | None = None,
 ) -> DetectorResult:
     """Flag points that at least ``min_rays`` other beams saw through (module docstring).
+
+    Each beam stops counting ``margin`` before its return, or longer where it meets the surface
+    there at a grazing angle (:func:`grazing_margins`).
+
+    ``seen_again`` (n,) bool: the points recorded again at another moment (persistent, as
+    :func:`algorithms.transient.persistent_points` finds them). A beam and a point in conflict
+    cannot both be right; the one seen again wins: such a point was there at two moments, so it
+    is static and not flagged, and only beams whose own return was seen again count as evidence
+    (a return seen once may be a multipath echo at a false range, whose beam "passes" through
+    the real surface in front of it). None: every point may be flagged, every beam counts.
+    ``beams`` (n,) bool: the points whose beam origin is known (others' beams never count).
 
     xyz (n, 3) and origin (n, 3) metres (the scanner position of each point's beam). Score (n,)
     = the see-through count; flagged = score >= min_rays; critical_value = min_rays.
@@ -299,8 +398,20 @@ def detect_free_space(
         raise ParameterError("xyz or origin holds NaN or infinite values")
     TransientParameters(free_space_radius=radius, free_space_margin=margin,
                         free_space_min_rays=min_rays)
-    score = see_through_counts(arr, org, radius=radius, margin=margin).astype(np.float64)
+    margins = grazing_margins(arr, org, radius=radius, margin=margin)
+    if seen_again is not None:
+        margins = np.where(seen_again, margins, np.inf)  # a beam with no evidence: never counts
+    if beams is not None:
+        margins = np.where(beams, margins, np.inf)
+    score = see_through_counts(arr, org, radius=radius, margin=margins).astype(np.float64)
     flagged = score >= min_rays
+    if seen_again is not None:
+        flagged &= ~seen_again
     info = {"radius": radius, "margin": margin, "min_rays": int(min_rays), "points": len(arr),
-            "points_tested": len(arr), "points_flagged": int(flagged.sum())}
+            "points_tested": len(arr), "points_flagged": int(flagged.sum()),
+            "beam_margin_median": (float(np.median(margins[np.isfinite(margins)]))
+                                   if np.isfinite(margins).any() else margin),
+            "beams_with_grazing_margin": int(np.count_nonzero(np.isfinite(margins)
+                                                              & (margins > margin))),
+            "beams_counted": int(np.count_nonzero(np.isfinite(margins)))}
     return DetectorResult(score=score, flagged=flagged, critical_value=float(min_rays), info=info)

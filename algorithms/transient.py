@@ -42,10 +42,6 @@ from algorithms.errors import ParameterError
 from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
 
-#: The simulator's two scanners: [point_source_id, forward, left, up] metres from the
-#: trajectory's reference point.
-SIMULATOR_LEVER_ARMS = ((1, -0.6, 0.45, 0.0), (2, -0.6, -0.45, 0.0))
-
 
 @dataclass(frozen=True)
 class TransientParameters(Parameters):
@@ -63,16 +59,18 @@ class TransientParameters(Parameters):
         0.006, "With a trajectory file: metres a beam must pass within a point to see through "
         "it (free-space evidence).", gt=0, le=10)
     free_space_margin: float = param(
-        0.08, "With a trajectory file: metres a beam must end beyond a point to count.",
+        0.08, "With a trajectory file: metres a beam must end beyond a point to count (the "
+        "least: more where the beam meets the surface at its end at a grazing angle).",
         ge=0, le=100)
     free_space_min_rays: int = param(
         1, "With a trajectory file: beams that saw through a point to flag it.", ge=1, le=1000)
     lever_arms: tuple[tuple[int, float, float, float], ...] = param(
-        SIMULATOR_LEVER_ARMS,
+        (),
         "With a trajectory file: [point_source_id, forward, left, up] metres of each scanner "
         "from the trajectory's reference point in the vehicle frame (heading from the "
-        "trajectory's motion). Default: the simulator's two scanners (trajectory = roof point "
-        "at scanner height). Scanners not listed sit at the reference point.")
+        "trajectory's motion), as the system's calibration gives them. A scanner not listed is "
+        "placed from its own points (a profile scanner's beams turn at one rate in one plane "
+        "through it); one that cannot be placed gives no free-space evidence.")
 
 #: Points per kNN batch.
 KNN_BATCH = 262_144

@@ -1,5 +1,6 @@
 """The mobile profile's default pipeline alone on simulated clouds: recall, false alarms and
-recall per outlier kind, without and with the trajectory (and the system's true lever arms).
+recall per outlier kind, without and with the trajectory (the lever arms estimated from the
+points, or the system's true ones given).
 
     .venv/bin/python benchmarks/bench_default_mobile.py 100,101,102,103,104      # reporting seeds
     .venv/bin/python benchmarks/bench_default_mobile.py 0,1,2 --conditions B     # tuning seeds
@@ -28,7 +29,8 @@ def run(seeds: list[int], conditions: str, scale: float, cache: Path) -> None:
     """Print one line per condition and variant."""
     stages = [s.detector for s in default_stages(True)]
     for cond in conditions:
-        for variant in ("no trajectory", "trajectory"):
+        for variant in ("no trajectory", "trajectory, lever arms estimated",
+                        "trajectory, lever arms given"):
             tp = fp = n_out = n_real = 0
             kinds: dict[str, list[int]] = {}
             for seed in seeds:
@@ -39,8 +41,9 @@ def run(seeds: list[int], conditions: str, scale: float, cache: Path) -> None:
                     kind = np.asarray(t["kind"])
                     names = [str(k) for k in t["kind_names"]]
                 settings = None
-                if variant == "trajectory":
+                if variant.startswith("trajectory"):
                     cloud = bench.with_simulated_trajectory(cloud, path)
+                if variant.endswith("given"):
                     settings = {"transient": {"lever_arms": bench.simulated_lever_arms(path)}}
                 flags, _, _ = bench.run_outlier_pipeline(cloud, stages, settings)
                 tp += int((flags & out).sum())

@@ -30,7 +30,7 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
     if cloud.trajectory is None:
         result.info["free_space"] = "no trajectory file given"
         return result
-    seen_through, fs_info = _free_space(cloud, gps_time, params)
+    seen_through, fs_info = _free_space(cloud, gps_time, params, result.score == 0.0)
     clusters = np.asarray(result.flagged, dtype=bool)
     flagged = clusters | seen_through
     score = np.where(seen_through, np.maximum(result.score, 2.0), result.score)
@@ -46,10 +46,12 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
 
 
 def _free_space(
-    cloud: Cloud, gps_time: np.ndarray, params: TransientParameters
+    cloud: Cloud, gps_time: np.ndarray, params: TransientParameters, persistent: np.ndarray
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """(n,) bool seen-through points and the info, on the points the trajectory's time covers."""
-    from algorithms.free_space import detect_free_space, scanner_origins
+    """(n,) bool seen-through points and the info, on the points the trajectory's time covers;
+    ``persistent``: the points the cluster test found recorded again at another moment (they
+    win a conflict with a beam, :func:`algorithms.free_space.detect_free_space`)."""
+    from algorithms.free_space import detect_free_space, scanner_origins, vehicle_pose
 
     traj = cloud.trajectory
     assert traj is not None
@@ -61,20 +63,53 @@ def _free_space(
         span = f"{float(finite.min())!r}..{float(finite.max())!r}" if finite.size else "none finite"
         raise ParameterError(f"the trajectory's times {t0!r}..{t1!r} do not overlap the points' "
                              f"gps_time ({span}); both must use the same time base")
-    arms = {int(a[0]): (float(a[1]), float(a[2]), float(a[3])) for a in params.lever_arms}
     index = np.flatnonzero(covered)
-    origin = scanner_origins(gps_time[index], cloud.point_source_id[index], traj, arms)
+    source = cloud.point_source_id[index]
+    position, heading = vehicle_pose(gps_time[index], traj)
+    arms, arm_info = _lever_arms(cloud.xyz[index], gps_time[index], source, position, heading,
+                                 params.lever_arms)
+    origin = scanner_origins(gps_time[index], source, traj, arms)
+    placed = np.isin(source, list(arms))
     fs = detect_free_space(cloud.xyz[index], origin, radius=params.free_space_radius,
-                           margin=params.free_space_margin, min_rays=params.free_space_min_rays)
+                           margin=params.free_space_margin, min_rays=params.free_space_min_rays,
+                           seen_again=persistent[index], beams=placed)
     seen = np.zeros(len(cloud), dtype=bool)
     seen[index] = fs.flagged
-    listed = np.isin(cloud.point_source_id[index], list(arms))
     info = {"radius": params.free_space_radius, "margin": params.free_space_margin,
             "min_rays": params.free_space_min_rays, "points_covered": n_cov,
             "points_uncovered": int(len(cloud) - n_cov),
-            "points_without_lever_arm": int((~listed).sum()),
+            "lever_arms": arm_info,
+            "points_without_lever_arm": int((~placed).sum()),
+            "beams_counted": fs.info["beams_counted"],
+            "beams_with_grazing_margin": fs.info["beams_with_grazing_margin"],
+            "beam_margin_median": fs.info["beam_margin_median"],
             "points_flagged": int(fs.flagged.sum())}
     return seen, info
+
+
+def _lever_arms(
+    xyz: np.ndarray, gps_time: np.ndarray, source: np.ndarray, position: np.ndarray,
+    heading: np.ndarray, given: tuple[tuple[int, float, float, float], ...],
+) -> tuple[dict[int, tuple[float, float, float]], dict[str, Any]]:
+    """The lever arm of every scanner that can be placed: as given, else fitted to its own
+    points (:mod:`algorithms.lever_arms`); and per scanner how (for the statistics)."""
+    from algorithms.lever_arms import fit_lever_arm
+
+    arms = {int(a[0]): (float(a[1]), float(a[2]), float(a[3])) for a in given}
+    info: dict[str, Any] = {}
+    for sid in np.unique(source).tolist():
+        if sid in arms:
+            info[str(sid)] = {"source": "given", "arm": list(arms[sid])}
+            continue
+        m = source == sid
+        fit = fit_lever_arm(xyz[m], gps_time[m], position[m], heading[m])
+        if fit.arm is not None:
+            arms[sid] = fit.arm
+            info[str(sid)] = {"source": "estimated", "arm": list(fit.arm),
+                              **fit.info}
+        else:
+            info[str(sid)] = {"source": "none", **fit.info}
+    return arms, info
 
 
 DETECTOR = Detector(

@@ -6,8 +6,9 @@ Sections, each skipped when its data is absent:
    reporting seeds kept apart from the seeds detectors are tuned on: every outlier pipeline --
    the paper's ``temporal``, ``patch``, ``section`` and ``temporal->patch``, then every other
    outlier detector of :data:`lidar_outliers.detectors.DETECTORS` alone, then the default
-   pipeline when it differs (also with the trajectory and the system's lever arms) -- in the
-   layout of the paper's Tables 2-5 beside the published figures, plus precision, recall and F1;
+   pipeline when it differs (also with the trajectory, the scanners' lever arms estimated from
+   the points) -- in the layout of the paper's Tables 2-5 beside the published figures, plus
+   precision, recall and F1;
    a summary against the targets and recall per condition and outlier kind.
 2. ISPRS ground-filter samples: type I, type II, total error and kappa per sample and the mean,
    with the defaults (in sample) and leave-one-sample-out over a small parameter grid.
@@ -291,17 +292,15 @@ def bench_simulated(cfg: BenchConfig, report: Report, say: Print) -> dict[str, P
                 if "facts" in t:
                     systems.setdefault(seed, {})[cond] = json.loads(str(t["facts"]))
             points[cond] += len(cloud)
-            tracked = with_simulated_trajectory(cloud, path)
-            arms = simulated_lever_arms(path)
+            tracked = with_simulated_trajectory(cloud, path)  # lever arms: from the points
             for name, stages in pipelines.items():
                 with_traj = name.endswith(WITH_TRAJECTORY)
                 run_on = tracked if with_traj else cloud
                 if name in failed or run_on is None:
                     continue
-                settings = {"transient": {"lever_arms": arms}} if with_traj and arms else None
                 say(f"  {cond} seed {seed}: {name}")
                 try:
-                    f, per_stage, sec = run_outlier_pipeline(run_on, stages, settings)
+                    f, per_stage, sec = run_outlier_pipeline(run_on, stages)
                 except LidarOutliersError as exc:  # e.g. a detector needing another dimension
                     failed[name] = f"{type(exc).__name__}: {exc}"
                     continue

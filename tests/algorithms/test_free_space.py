@@ -8,9 +8,11 @@ import pytest
 from algorithms.errors import ParameterError
 from algorithms.free_space import (
     detect_free_space,
+    grazing_margins,
     ray_point_test,
     scanner_origins,
     see_through_counts,
+    surface_at_points,
 )
 
 
@@ -121,3 +123,87 @@ def test_bad_input_is_refused():
         scanner_origins(np.zeros(2), np.ones(2), np.zeros((1, 4)), {})
     with pytest.raises(ParameterError, match="increase"):
         scanner_origins(np.zeros(2), np.ones(2), np.zeros((3, 4)), {})
+
+
+def slow_surface(xyz: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's k nearest by a full distance sort, the plane by an SVD of them."""
+    normal, rough = np.zeros((len(xyz), 3)), np.zeros(len(xyz))
+    for i, p in enumerate(xyz):
+        nb = xyz[np.argsort(np.linalg.norm(xyz - p, axis=1), kind="stable")[:k]]
+        _, sv, vt = np.linalg.svd(nb - nb.mean(axis=0))
+        normal[i], rough[i] = vt[-1], sv[-1] / np.sqrt(k)
+    return normal, rough
+
+
+def test_surface_at_points_matches_an_svd_of_the_nearest_points():
+    rng = np.random.default_rng(5)
+    xyz = np.column_stack([rng.uniform(0, 2, 300), rng.uniform(0, 2, 300),
+                           rng.normal(0, 0.01, 300)])
+    normal, rough = surface_at_points(xyz, k=10)
+    slow_n, slow_r = slow_surface(xyz, 10)
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", normal, slow_n)), 1.0, atol=1e-6)
+    np.testing.assert_allclose(rough, slow_r, atol=1e-9)
+
+
+def wall_at_grazing_incidence(rng: np.random.Generator, noise: float):
+    """A scanner driving along x 1 m beside a wall (the plane y = 1) that it hits 15-30 m
+    ahead (1.9-3.8 degrees incidence), range noise ``noise`` m; droplets 0.3 m off the wall on
+    earlier beams' paths."""
+    n = 6000
+    x0 = np.sort(rng.uniform(0, 20, n))
+    origin = np.column_stack([x0, np.zeros(n), np.full(n, 2.0)])
+    end = np.column_stack([x0 + rng.uniform(15, 30, n), np.ones(n), rng.uniform(1.8, 2.2, n)])
+    beam = (end - origin) / np.linalg.norm(end - origin, axis=1)[:, None]
+    wall = end + beam * rng.normal(0, noise, n)[:, None]
+    pick = rng.choice(np.flatnonzero(x0 < 10), 8, replace=False)
+    mist = origin[pick] + 0.7 * (end[pick] - origin[pick])
+    xyz = np.vstack([wall, mist])
+    org = np.vstack([origin, origin[pick] + [0.0, 0.0, 0.4]])
+    return xyz, org, np.arange(n, n + len(pick))
+
+
+def test_a_fixed_margin_sees_through_a_wall_at_grazing_incidence_and_the_beam_margin_not():
+    rng = np.random.default_rng(6)
+    xyz, origin, mist = wall_at_grazing_incidence(rng, noise=0.005)
+    wall = np.ones(len(xyz), bool)
+    wall[mist] = False
+    fixed = see_through_counts(xyz, origin, radius=0.006, margin=0.08) > 0
+    assert np.count_nonzero(fixed[wall]) > 10  # the wall's own points seen through
+    res = detect_free_space(xyz, origin, radius=0.006, margin=0.08)
+    assert not res.flagged[wall].any()
+    assert res.flagged[mist].all()
+    assert res.info["beams_with_grazing_margin"] > len(xyz) // 2
+
+
+def test_grazing_margin_is_radius_and_roughness_over_the_sine():
+    # a flat noiseless grid: roughness 0, so the margin is radius / sin(angle) or the least
+    g = np.stack(np.meshgrid(np.arange(0, 3, 0.1), np.arange(0, 3, 0.1)), -1).reshape(-1, 2)
+    xyz = np.column_stack([g, np.zeros(len(g))])
+    steep = xyz + [0.0, 0.0, 10.0]  # straight down: sin = 1
+    flat = xyz + [-100.0, 0.0, np.tan(np.radians(3.0)) * 100.0]  # 3 degrees to the plane
+    np.testing.assert_allclose(grazing_margins(xyz, steep, radius=0.006, margin=0.08), 0.08)
+    want = 0.006 / np.sin(np.radians(3.0))
+    got = grazing_margins(xyz, flat, radius=0.006, margin=0.0)
+    np.testing.assert_allclose(got, want, rtol=1e-3)
+
+
+def test_a_point_seen_again_wins_over_the_beam_through_it():
+    """A multipath echo at a false range behind a wall: its beam passes through the wall's
+    points. Those were recorded again at another moment (static), so they stay and the beam,
+    whose own return nobody saw again, is no evidence; without that knowledge the wall is
+    flagged."""
+    rng = np.random.default_rng(8)
+    xyz, origin, floating = wall_scene(rng)
+    wall_point = 10
+    echo = origin[0] + 1.5 * (xyz[wall_point] - origin[0])  # straight through it, 1.5x range
+    xyz = np.vstack([xyz, echo])
+    origin = np.vstack([origin, origin[0]])
+    echo_i = len(xyz) - 1
+    blind = detect_free_space(xyz, origin, radius=0.01)
+    assert blind.flagged[wall_point]
+    again = np.ones(len(xyz), bool)
+    again[floating] = again[echo_i] = False
+    res = detect_free_space(xyz, origin, radius=0.01, seen_again=again)
+    assert not res.flagged[wall_point]
+    assert not res.flagged[again].any()
+    assert res.info["beams_counted"] == int(again.sum())

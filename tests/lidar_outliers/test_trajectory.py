@@ -10,7 +10,7 @@ from algorithms.transient import detect_transient
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors import DETECTORS, get_detector
 from lidar_outliers.errors import ParameterError
-from lidar_outliers.tools.simulator import SCANNERS, simulate
+from lidar_outliers.tools.simulator import simulate
 from lidar_outliers.trajectory import parse_trajectory, read_trajectory
 
 
@@ -53,16 +53,27 @@ def test_binary_file_is_refused(tmp_path):
         read_trajectory(path)
 
 
-def test_default_lever_arms_are_the_simulators():
-    """The documented default: the simulator's scanners, trajectory at the scanners' height."""
-    arms = {a[0]: a[1:] for a in DETECTORS["transient"].parameters().lever_arms}
-    assert arms == {s.source_id: (s.offset[0], s.offset[1], 0.0) for s in SCANNERS}
+def test_lever_arms_are_estimated_from_the_points_by_default():
+    """No lever arm given: each scanner is placed from its own points, within centimetres of
+    where the simulated system mounted it."""
+    sim = simulate("A", 1, 0.04)
+    cloud = Cloud(sim.xyz, np.zeros(3), sim.gps_time, sim.point_source_id,
+                  np.zeros(len(sim.xyz), np.uint8), trajectory=sim.trajectory)
+    transient = get_detector("transient")
+    assert transient.parameters().lever_arms == ()
+    arms = transient.run(cloud, transient.parameters()).info["free_space"]["lever_arms"]
+    true = {int(a[0]): a[1:] for a in sim.lever_arms()}
+    assert set(arms) == {str(k) for k in true}
+    for sid, arm in true.items():
+        assert arms[str(sid)]["source"] == "estimated"
+        np.testing.assert_allclose(arms[str(sid)]["arm"], arm, atol=0.05)
 
 
 def test_transient_with_trajectory_is_clusters_or_free_space():
-    """The registry's transient = detect_transient OR detect_free_space on the same origins,
-    computed here directly; and the cloud's local frame is honoured (origin shifted)."""
-    sim = simulate("A", 1, 0.01)
+    """The registry's transient = detect_transient OR detect_free_space on the same origins
+    (the points detect_transient found persistent seen again), computed here directly; and the
+    cloud's local frame is honoured (origin shifted)."""
+    sim = simulate("A", 1, 0.04)
     shift = np.array([500.0, -200.0, 30.0])  # the local frame: xyz + origin = file coordinates
     traj_local = sim.trajectory - np.r_[0.0, shift]
     n = len(sim.xyz)
@@ -72,10 +83,13 @@ def test_transient_with_trajectory_is_clusters_or_free_space():
     params = DETECTORS["transient"].parameters()
     result = get_detector("transient").run(cloud, params)
 
-    arms = {int(a[0]): tuple(a[1:]) for a in params.lever_arms}
+    placed = result.info["free_space"]["lever_arms"]
+    arms = {int(k): tuple(v["arm"]) for k, v in placed.items() if v["source"] == "estimated"}
+    assert len(arms) == len(placed)
     origin = scanner_origins(sim.gps_time, sim.point_source_id, sim.trajectory, arms)
-    free = detect_free_space(sim.xyz, origin).flagged
-    clusters = detect_transient(sim.xyz, sim.gps_time, sim.point_source_id).flagged
+    found = detect_transient(sim.xyz, sim.gps_time, sim.point_source_id)
+    clusters = found.flagged
+    free = detect_free_space(sim.xyz, origin, seen_again=found.score == 0).flagged
     np.testing.assert_array_equal(result.flagged, clusters | free)
     assert result.info["points_flagged_by_free_space"] == int(free.sum()) > 0
     assert result.info["points_flagged_by_clusters"] == int(clusters.sum())

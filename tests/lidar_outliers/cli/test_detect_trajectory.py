@@ -73,8 +73,10 @@ def test_lever_arms_option_reaches_the_detector(capsys, tmp_path, simulated):
     stats, _ = _run(capsys, tmp_path, simulated, "--trajectory", str(traj),
                     "--detector", "transient", "--lever-arms", "[[1, -0.6, 0.45, 0]]")
     assert stats["stages"][0]["params"]["lever_arms"] == [[1, -0.6, 0.45, 0.0]]
-    # scanner 2's points fall back to the reference point and are counted as such
-    assert stats["stages"][0]["info"]["free_space"]["points_without_lever_arm"] > 0
+    # scanner 1 as given, the others placed from their own points
+    arms = stats["stages"][0]["info"]["free_space"]["lever_arms"]
+    assert arms["1"] == {"source": "given", "arm": [-0.6, 0.45, 0.0]}
+    assert {a["source"] for k, a in arms.items() if k != "1"} <= {"estimated", "none"}
 
 
 @pytest.mark.parametrize(
