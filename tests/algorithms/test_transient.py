@@ -8,10 +8,13 @@ import pytest
 from algorithms.errors import ParameterError
 from algorithms.transient import (
     detect_transient,
+    detect_transient_given,
     floating_clusters,
     neighbour_table,
     persistent_points,
     scan_line_neighbours,
+    scan_line_sides,
+    touching_persistent,
 )
 
 
@@ -91,8 +94,10 @@ def test_steps_match_slow_loops(seed):
     k, radius, min_dt = 12, 0.25, 0.5
     idx, near = neighbour_table(xyz, k, radius)
     persistent = persistent_points(t, idx, near, min_dt)
-    floating, fast = floating_clusters(xyz, persistent, idx, near, radius,
-                                       scan_line_neighbours(t, source))
+    clusters = floating_clusters(xyz, persistent, touching_persistent(idx, near, persistent),
+                                 radius, scan_line_sides(scan_line_neighbours(t, source),
+                                                         persistent))
+    floating, fast = clusters.floating, clusters.flagged
     slow_p, slow_fl, slow_f = slow_floating(xyz, t, radius, min_dt, k, source)
     np.testing.assert_array_equal(persistent, slow_p)
     np.testing.assert_array_equal(floating, slow_fl)
@@ -167,3 +172,55 @@ def test_tiny_clouds():
     assert detect_transient(np.zeros((0, 3)), np.zeros(0)).score.shape == (0,)
     res = detect_transient(np.zeros((2, 3)), np.array([0.0, 10.0]))
     assert res.score.tolist() == [0.0, 0.0]
+
+
+def test_cluster_wider_than_max_extent_is_static():
+    """The arm is 1.5 m long: flagged while max_extent allows it, static scene once wider."""
+    rng = np.random.default_rng(2)
+    xyz, t, arm = street(rng)
+    narrow = detect_transient(xyz, t, radius=0.25, max_extent=1.0)
+    wide = detect_transient(xyz, t, radius=0.25, max_extent=2.0)
+    assert wide.flagged[arm].all() and wide.info["single_epoch_wide"] == 0
+    assert not narrow.flagged.any()
+    assert narrow.info["single_epoch_wide"] >= len(arm)
+    np.testing.assert_array_equal(narrow.score[arm], 1.0)
+
+
+def _given(xyz, t, source, rows, k, radius, min_dt):
+    """The whole cloud's persistence and scan-line neighbours, read for the points ``rows``."""
+    idx, near = neighbour_table(xyz, k, radius)
+    persistent = persistent_points(t, idx, near, min_dt)
+    where = np.full(len(xyz), -1)
+    where[rows] = np.arange(len(rows))
+    sides = []
+    for side in scan_line_sides(scan_line_neighbours(t, source), persistent):
+        j = side.row[rows]
+        sides.append(type(side)(side.present[rows], np.where(j >= 0, where[j], -1),
+                                side.persistent[rows]))
+    return persistent[rows], tuple(sides)
+
+
+@pytest.mark.parametrize("x0", [0.0, 1.3, 2.6])
+def test_points_within_max_extent_and_radius_decide_as_the_whole_cloud(x0):
+    """A core strip 0.8 m wide with the points within max_extent + radius around it: its
+    points' flags and scores are the whole cloud's, though the arm, the rail and the ground's
+    single-epoch patches cross the strip's edge and the scan-line neighbours lie elsewhere."""
+    rng = np.random.default_rng(4)
+    xyz, t, _ = street(rng)
+    top, t_top = hidden_box(rng)
+    s = rng.uniform(0.2, 3.8, 300)  # a rail 3.6 m long over the street, seen once: wide
+    rail = np.column_stack([s, np.full(300, 3.5), np.full(300, 1.2)])
+    t_rail = 4e5 + rng.uniform(0.8, 0.82, 300)
+    xyz, t = np.vstack([xyz, top, rail]), np.concatenate([t, t_top, t_rail])
+    source = rng.integers(1, 3, len(t))
+    k, radius, min_dt, max_extent = 12, 0.25, 0.5, 1.6
+    whole = detect_transient(xyz, t, source, k=k, radius=radius, min_dt=min_dt,
+                             max_extent=max_extent, centre=False)
+    assert whole.flagged.any() and whole.info["single_epoch_wide"] > 0
+    halo = max_extent + radius
+    rows = np.flatnonzero((xyz[:, 0] >= x0 - halo) & (xyz[:, 0] <= x0 + 0.8 + halo))
+    core = (xyz[rows, 0] >= x0) & (xyz[rows, 0] <= x0 + 0.8)
+    persistent, sides = _given(xyz, t, source, rows, k, radius, min_dt)
+    part = detect_transient_given(xyz[rows], persistent, sides, k=k, radius=radius,
+                                  max_extent=max_extent)
+    np.testing.assert_array_equal(part.score[core], whole.score[rows][core])
