@@ -81,6 +81,29 @@ class Estimate:
     pin: Callable[[Any, list[np.ndarray]], tuple[Any, dict[str, Any]]]
 
 
+@dataclass(frozen=True)
+class Prepass:
+    """Per-point facts a detector reads from the whole file, gathered before its tiles run
+    (``transient``: which points are persistent, and the scan-line neighbours, which may lie
+    anywhere).
+
+    ``halo(params)``: XY metres around a tile that ``values`` needs to be exact for the tile's
+    points. ``values(cloud, params)``: per-point arrays by name, (n,) each, on the stage's
+    input of a tile's region. ``combine(params, columns, out)``: fills ``out`` ((n,) records of
+    ``dtype`` in file order) from ``columns``: every point's ``values`` in file order, plus
+    ``in_stage`` (bool: the point reached the stage), ``gps_time`` and ``point_source_id``, as
+    (n,) arrays on disk; returns the statistics' info on it. The detector's ``run`` then finds,
+    on a tile, ``cloud.known[name]``: its points' records of ``out`` and their ``index`` in the
+    file. A tiled run gathers the values tile by tile, combines, then runs the tiles with the
+    detector's ``halo`` (:mod:`lidar_outliers.tiling`).
+    """
+
+    halo: Callable[[Any], float]
+    values: Callable[[Cloud, Any], dict[str, np.ndarray]]
+    dtype: np.dtype
+    combine: Callable[[Any, dict[str, np.ndarray], np.ndarray], dict[str, Any]]
+
+
 def no_halo(_params: Any) -> None:
     """The default: not declared, so the stage runs on the whole cloud."""
     return None
@@ -117,6 +140,8 @@ class Detector:
     points reached further than the halo is run again with a wider one. ``uses_trajectory``:
     with a trajectory the detector follows beams across the cloud, so it does not run in tiles.
     ``whole_cloud``: why the detector needs the whole cloud (its halo None), for the statistics.
+    ``prepass``: facts from the whole file the tiles read (:class:`Prepass`); the ``halo`` then
+    holds with them given.
     """
 
     name: str
@@ -131,6 +156,7 @@ class Detector:
     uses_trajectory: bool = False
     whole_cloud: str | None = None
     estimate: Estimate | None = None
+    prepass: Prepass | None = None
     model: type[StageModel] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

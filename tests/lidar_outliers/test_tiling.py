@@ -105,17 +105,96 @@ def moving(tmp_path_factory) -> Path:
                      offsets=(600_000, 5_000_000, 0), vlrs=())
 
 
-def test_transient_runs_whole_and_says_why(moving, tmp_path):
-    """A floating cluster is judged by the returns its scanner fired just before and after it,
-    which may lie anywhere in the cloud: transient does not run in tiles, and the pipeline's
-    result is the whole cloud's."""
+def _surface(rng: np.random.Generator, lo, hi, density: float) -> np.ndarray:
+    """Points uniform in the box lo..hi (one side of zero size: a plane), ``density`` a m2."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    span = hi - lo
+    area = np.prod(np.sort(span)[1:])
+    return lo + rng.uniform(0, 1, (int(area * density), 3)) * span
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory) -> Path:
+    return street_scene(tmp_path_factory.mktemp("street") / "street.las")
+
+
+def street_scene(path: Path) -> Path:
+    """Two scanners driving along x at 5 m/s, the second seeing each place 2 s after the first:
+    a road and a wall both saw (persistent); a 12 m stretch of road only the first saw (one
+    pass, attached); a canopy 15 m long over the road only the second saw, between its road
+    returns (floating and revisited, but wider than max_extent); a 4 m box floating over the
+    road, seen by the first scanner while it swept the road 15 m behind (moving, flagged)."""
+    rng = np.random.default_rng(8)
+    parts, times, sources = [], [], []
+
+    def add(xyz: np.ndarray, source: np.ndarray, t: np.ndarray) -> None:
+        parts.append(xyz), sources.append(source), times.append(t)
+
+    def seen(xyz: np.ndarray, source: np.ndarray) -> np.ndarray:
+        return 10 + xyz[:, 0] / 5 + 2.0 * (source == 2) + rng.uniform(0, 0.01, len(xyz))
+
+    for lo, hi in (((0, 0, 0), (30, 6, 0)), ((0, 7, 0), (30, 7, 3))):  # road and wall
+        xyz = _surface(rng, lo, hi, 25)
+        source = rng.integers(1, 3, len(xyz))
+        add(xyz, source, seen(xyz, source))
+    once = _surface(rng, (30, 0, 0), (42, 6, 0), 25)  # one pass
+    add(once, np.ones(len(once), int), seen(once, np.ones(len(once))))
+    canopy = _surface(rng, (5, 2, 4.5), (20, 3, 4.5), 40)
+    add(canopy, np.full(len(canopy), 2), seen(canopy, np.full(len(canopy), 2)))
+    box = np.vstack([_surface(rng, (20, 3.5, 2.5), (24, 5, 2.5), 40),
+                     _surface(rng, (20, 3.5, 1.0), (24, 3.5, 2.5), 40)])
+    add(box, np.ones(len(box), int), rng.uniform(11.0, 11.3, len(box)))
+    xyz, t, source = np.vstack(parts), np.concatenate(times), np.concatenate(sources)
+    order = np.argsort(t)
+    return write_las(path, xyz[order] + [600_000, 5_000_000, 50], gps_time=t[order] + 1000,
+                     point_source_id=source[order].astype(np.uint16),
+                     offsets=(600_000, 5_000_000, 0), vlrs=())
+
+
+#: transient's stage on the street: radius for its density, max_extent below the canopy's
+#: length and above the box's, both much longer than the tiles.
+TRANSIENT = {"detector": "transient", "radius": 0.5, "max_extent": 8.0}
+STREET_TILE = 1.5
+
+
+@pytest.mark.parametrize("pipeline", [
+    [TRANSIENT],
+    [TRANSIENT, {"detector": "height_field", "sigma": 0.01, "low": False}],
+    [{"detector": "height_field", "sigma": 0.01, "low": False}, TRANSIENT],
+], ids=["transient", "transient, then height_field", "height_field, then transient"])
+def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
+    """Persistence and the scan-line neighbours come from passes over the whole file, the
+    clusters from the tile and max_extent + radius around it: the whole cloud's result."""
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
-    pipeline = {"pipeline": [{"detector": "transient"},
-                             {"detector": "height_field", "low": False}]}
-    process_file(moving, whole, pipeline)
-    stats = process_file(moving, tiled, pipeline, tile_size=4.0)
-    assert stats["mode"] == "in memory" and "scan-line neighbours" in stats["tiling"]
-    _assert_same(_results(whole), _results(tiled), ["transient", "height_field"])
+    stats_whole = process_file(street, whole, {"pipeline": pipeline})
+    stats = process_file(street, tiled, {"pipeline": pipeline}, tile_size=STREET_TILE)
+    assert stats_whole["mode"] == "in memory" and stats["mode"] == "tiled"
+    assert stats["tiles"]["count"] >= 100
+    a, b = _results(whole), _results(tiled)
+    _assert_same(a, b, [s["detector"] for s in pipeline])
+    for sw, st in zip(stats_whole["stages"], stats["stages"], strict=True):
+        assert (sw["points_in"], sw["points_tested"], sw["points_flagged"]) == (
+            st["points_in"], st["points_tested"], st["points_flagged"])
+    assert stats["overall"] == stats_whole["overall"]
+    flagged = (np.asarray(a.outlier_flags) & 128) != 0
+    x, y, z = (np.asarray(a[d]) - o for d, o in (("x", 600_000), ("y", 5e6), ("z", 50)))
+    box = (x >= 20) & (x <= 24) & (y >= 3.4) & (y <= 5.1) & (z >= 0.9) & (z <= 2.6)
+    assert flagged[box].all() and not flagged[~box].any()  # the canopy too is static
+    transient = next(s for s in stats["stages"] if s["detector"] == "transient")
+    assert transient["info"]["scan_lines"].startswith("sorted")
+
+
+def test_transient_tiled_keeps_the_wide_canopy_static_as_the_whole_cloud(street, tmp_path):
+    """With max_extent above the canopy's 15 m the canopy floats and is flagged, whole and in
+    tiles alike (the halo, max_extent + radius, then covers the street)."""
+    stage = {**TRANSIENT, "max_extent": 20.0}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    process_file(street, whole, {"pipeline": [stage]})
+    process_file(street, tiled, {"pipeline": [stage]}, tile_size=STREET_TILE)
+    a, b = _results(whole), _results(tiled)
+    _assert_same(a, b, ["transient"])
+    flagged = (np.asarray(a.outlier_flags) & 128) != 0
+    assert flagged[np.asarray(a.z) - 50 > 4].mean() > 0.9
 
 
 def test_transient_with_a_trajectory_runs_whole_and_says_why(moving, tmp_path):
@@ -132,8 +211,7 @@ def test_every_detector_declares_whether_it_tiles():
         halo = detector.halo(detector.parameters())
         assert halo is None or halo >= 0, name
     tiled = {name for name, d in DETECTORS.items() if d.halo(d.parameters()) is not None}
-    assert {"patch", "section", "dror", "snow"} <= tiled
-    assert "transient" not in tiled
+    assert {"patch", "section", "dror", "snow", "transient"} <= tiled
 
 
 @pytest.mark.parametrize("name", [n for n, d in DETECTORS.items()
