@@ -133,7 +133,15 @@ def cell_name(cell: tuple[int, int]) -> str:
 
 
 def known_name(detector: str, cell: tuple[int, int]) -> str:
-    return f"known_{detector}_{cell[0]}_{cell[1]}.npy"
+    return f"known_{detector}_{cell[0]}_{cell[1]}.bin"
+
+
+def known_dtype(detector: str) -> np.dtype:
+    """One point's record in a cell's file of a detector's pre-pass facts: its index in the
+    file, then the detector's :attr:`~lidar_outliers.detectors.base.Prepass.dtype`."""
+    prepass = get_detector(detector).prepass
+    assert prepass is not None
+    return np.dtype([("index", "<i8"), *[(f, prepass.dtype[f]) for f in prepass.dtype.names or ()]])
 
 
 def result_name(cell: tuple[int, int]) -> str:
@@ -297,14 +305,15 @@ def read_known(tiles: TileSet, detector: str, cell: tuple[int, int]) -> np.ndarr
     path = tiles.folder / known_name(detector, cell)
     if tiles.fetch is not None and not path.exists():
         tiles.fetch(cell, path)
+    dtype = known_dtype(detector)
     try:
-        known = np.load(path)
-    except (OSError, ValueError) as exc:
-        raise TileError(f"tile file {path.name} cannot be read: {exc}") from None
-    if len(known) != tiles.cells[cell]:
-        raise TileError(f"tile file {path.name} holds {len(known)} points, expected "
-                        f"{tiles.cells[cell]}")
-    return known
+        size = path.stat().st_size
+        if size != tiles.cells[cell] * dtype.itemsize:
+            raise TileError(f"tile file {path.name} holds {size} bytes, expected "
+                            f"{tiles.cells[cell]} points")
+        return np.fromfile(path, dtype=dtype)
+    except OSError as exc:
+        raise TileError(f"tile file {path.name} cannot be read: {exc.strerror}") from None
 
 
 def region_known(tiles: TileSet, rec: np.ndarray) -> dict[str, np.ndarray] | None:
@@ -471,8 +480,7 @@ def prepare_stage(
         columns["point_source_id"][rec["index"]] = rec["point_source_id"]
     out = mapped("known", spec.prepass.dtype)
     info = spec.prepass.combine(stage.parameters(), columns, out)
-    with_index = np.dtype([("index", "<i8"), *[(f, spec.prepass.dtype[f])
-                                               for f in spec.prepass.dtype.names or ()]])
+    with_index = known_dtype(stage.detector)
     for cell in sorted(tiles.cells):
         index = read_cell(tiles, cell)["index"]
         known = np.empty(len(index), dtype=with_index)
@@ -481,9 +489,9 @@ def prepare_stage(
         for f in spec.prepass.dtype.names or ():
             known[f] = part[f]
         path = tiles.folder / known_name(stage.detector, cell)
-        fd, tmp = tempfile.mkstemp(dir=tiles.folder, prefix=".part-", suffix=".npy")
+        fd, tmp = tempfile.mkstemp(dir=tiles.folder, prefix=".part-", suffix=".bin")
         with os.fdopen(fd, "wb") as fh:
-            np.save(fh, known)
+            known.tofile(fh)
         os.replace(tmp, path)
         if put is not None:
             put(path)
