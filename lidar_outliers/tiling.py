@@ -701,10 +701,10 @@ def noise_truth(tiles: TileSet, reference: list[int] | None, folder: Path) -> np
 # --------------------------------------------------------------------------- one machine
 
 
-def _next_whole_file_step(stages: list[StageModel], tiles: TileSet) -> int | None:
+def next_whole_file_step(stages: list[StageModel], prepared: Iterable[str]) -> int | None:
     """The first stage still waiting for an estimate or a pre-pass over the whole file (each
     runs the stages before it, so the earliest goes first)."""
-    steps = [i for i in (pending_estimate(stages), pending_prepass(stages, tiles.prepared))
+    steps = [i for i in (pending_estimate(stages), pending_prepass(stages, prepared))
              if i is not None]
     return min(steps, default=None)
 
@@ -731,7 +731,7 @@ def process_tiled(
             return halos
         t_cut = time.perf_counter()
         estimated: dict[int, dict[str, Any]] = {}
-        while (i := _next_whole_file_step(stages, tiles)) is not None:
+        while (i := next_whole_file_step(stages, tiles.prepared)) is not None:
             if pending_prepass(stages, tiles.prepared) == i:
                 values = (run_tile(tiles, cell, params, stages, trajectory, prepass_of=i)
                           for cell in sorted(tiles.cells))
