@@ -21,7 +21,7 @@ from lidar_outliers.tiling import (
     partition,
     run_tile,
 )
-from tests.lasfiles import tile_scene, write_las
+from tests.lasfiles import STREET_TRANSIENT, street_scene, tile_scene, write_las
 
 SENSOR = (600_012.0, 5_000_012.0, 52.0)
 TILE = 3.0  # metres: the box is 6 x 4 m, the sections 2 m, the patches about 1 m across
@@ -105,62 +105,18 @@ def moving(tmp_path_factory) -> Path:
                      offsets=(600_000, 5_000_000, 0), vlrs=())
 
 
-def _surface(rng: np.random.Generator, lo, hi, density: float) -> np.ndarray:
-    """Points uniform in the box lo..hi (one side of zero size: a plane), ``density`` a m2."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    span = hi - lo
-    area = np.prod(np.sort(span)[1:])
-    return lo + rng.uniform(0, 1, (int(area * density), 3)) * span
-
-
 @pytest.fixture(scope="module")
 def street(tmp_path_factory) -> Path:
     return street_scene(tmp_path_factory.mktemp("street") / "street.las")
 
 
-def street_scene(path: Path) -> Path:
-    """Two scanners driving along x at 5 m/s, the second seeing each place 2 s after the first:
-    a road and a wall both saw (persistent); a 12 m stretch of road only the first saw (one
-    pass, attached); a canopy 15 m long over the road only the second saw, between its road
-    returns (floating and revisited, but wider than max_extent); a 4 m box floating over the
-    road, seen by the first scanner while it swept the road 15 m behind (moving, flagged)."""
-    rng = np.random.default_rng(8)
-    parts, times, sources = [], [], []
-
-    def add(xyz: np.ndarray, source: np.ndarray, t: np.ndarray) -> None:
-        parts.append(xyz), sources.append(source), times.append(t)
-
-    def seen(xyz: np.ndarray, source: np.ndarray) -> np.ndarray:
-        return 10 + xyz[:, 0] / 5 + 2.0 * (source == 2) + rng.uniform(0, 0.01, len(xyz))
-
-    for lo, hi in (((0, 0, 0), (30, 6, 0)), ((0, 7, 0), (30, 7, 3))):  # road and wall
-        xyz = _surface(rng, lo, hi, 25)
-        source = rng.integers(1, 3, len(xyz))
-        add(xyz, source, seen(xyz, source))
-    once = _surface(rng, (30, 0, 0), (42, 6, 0), 25)  # one pass
-    add(once, np.ones(len(once), int), seen(once, np.ones(len(once))))
-    canopy = _surface(rng, (5, 2, 4.5), (20, 3, 4.5), 40)
-    add(canopy, np.full(len(canopy), 2), seen(canopy, np.full(len(canopy), 2)))
-    box = np.vstack([_surface(rng, (20, 3.5, 2.5), (24, 5, 2.5), 40),
-                     _surface(rng, (20, 3.5, 1.0), (24, 3.5, 2.5), 40)])
-    add(box, np.ones(len(box), int), rng.uniform(11.0, 11.3, len(box)))
-    xyz, t, source = np.vstack(parts), np.concatenate(times), np.concatenate(sources)
-    order = np.argsort(t)
-    return write_las(path, xyz[order] + [600_000, 5_000_000, 50], gps_time=t[order] + 1000,
-                     point_source_id=source[order].astype(np.uint16),
-                     offsets=(600_000, 5_000_000, 0), vlrs=())
-
-
-#: transient's stage on the street: radius for its density, max_extent below the canopy's
-#: length and above the box's, both much longer than the tiles.
-TRANSIENT = {"detector": "transient", "radius": 0.5, "max_extent": 6.0}
-STREET_TILE = 1.5
+STREET_TILE = 1.5  # metres: the box is 4 m long, the canopy 15 m, the one-pass stretch 12 m
 
 
 @pytest.mark.parametrize("pipeline", [
-    [TRANSIENT],
-    [TRANSIENT, {"detector": "height_field", "sigma": 0.01, "low": False}],
-    [{"detector": "height_field", "sigma": 0.01, "low": False}, TRANSIENT],
+    [STREET_TRANSIENT],
+    [STREET_TRANSIENT, {"detector": "height_field", "sigma": 0.01, "low": False}],
+    [{"detector": "height_field", "sigma": 0.01, "low": False}, STREET_TRANSIENT],
 ], ids=["transient", "transient, then height_field", "height_field, then transient"])
 def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
     """Persistence and the scan-line neighbours come from passes over the whole file, the
@@ -187,7 +143,7 @@ def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
 def test_transient_tiled_keeps_the_wide_canopy_static_as_the_whole_cloud(street, tmp_path):
     """With max_extent above the canopy's 15 m the canopy floats and is flagged, whole and in
     tiles alike (the halo, max_extent + radius, then covers the street)."""
-    stage = {**TRANSIENT, "max_extent": 20.0}
+    stage = {**STREET_TRANSIENT, "max_extent": 20.0}
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
     process_file(street, whole, {"pipeline": [stage]})
     process_file(street, tiled, {"pipeline": [stage]}, tile_size=5.0)
