@@ -78,10 +78,11 @@ class TransientParameters(Parameters):
         "persistent (seen again by the other scanner or on another pass).", gt=0, le=1e6)
     max_extent: float = param(
         40.0, "Metres: a single-epoch cluster whose XY bounding box is wider than this is static "
-        "scene seen once (a single pass's street, a façade hidden from the other scanner), not a "
-        "moving object. 40 m is over twice the longest articulated bus or lorry (18-25 m) and "
-        "three times a barrier arm, leaving room for the smear of an object moving along the "
-        "scan; a tiled run needs this much around each tile.", gt=0, le=1000)
+        "scene seen once (a single pass's street, a facade hidden from the other scanner), not a "
+        "moving object. 40 m: over 1.5 times the longest lorry or articulated bus (25.25 m) and "
+        "3 times a barrier arm (up to 12 m), leaving room for the smear of an object scanned "
+        "while it moves along (one keeping nearly the vehicle's speed can look longer still). "
+        "A tiled run reads this much plus radius around each tile.", gt=0, le=1000)
     free_space_radius: float = param(
         0.006, "With a trajectory file: metres a beam must pass within a point to see through "
         "it (free-space evidence).", gt=0, le=10)

@@ -117,7 +117,7 @@ def combine_scan_lines(params: TransientParameters, columns: dict[str, np.ndarra
             np.maximum(file_index, 0)]
         del file_index
     return {"scan_lines": "sorted by scanner and time over the whole file",
-            "points": int(use.size)}
+            "scan_line_points": int(use.size)}
 
 
 def _free_space(
