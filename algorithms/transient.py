@@ -162,6 +162,42 @@ def scan_line_neighbours(gps_time: np.ndarray, source: np.ndarray | None
     return before, after
 
 
+def stream_scan_lines(gps_time: np.ndarray, source: np.ndarray, use: np.ndarray,
+                      before: np.ndarray, after: np.ndarray, chunk: int = 4_000_000) -> bool:
+    """:func:`scan_line_neighbours` of the points ``use`` (n,) bool, written into ``before`` and
+    ``after`` (n,) as indices among all n points (-1: none, and for points not used), in one
+    pass of ``chunk`` points at a time: for files whose returns come in time order per scanner
+    (a drive written as recorded), where the order by time is the points' own. Returns False,
+    leaving the outputs unfinished, at the first return earlier than its scanner's previous
+    one (then sort). The arrays may be memory maps: memory is a chunk's."""
+    last_time: dict[int, float] = {}
+    last_index: dict[int, int] = {}
+    n = len(gps_time)
+    for s in range(0, n, chunk):
+        rows = s + np.flatnonzero(use[s:s + chunk])
+        before[s:s + chunk] = -1
+        after[s:s + chunk] = -1
+        src = np.asarray(source[rows], dtype=np.int64)
+        order = np.argsort(src, kind="stable")  # each scanner's returns, in file order
+        rows, src, t = rows[order], src[order], np.asarray(gps_time[rows][order])
+        same = src[1:] == src[:-1]
+        if np.any(same & (t[1:] < t[:-1])):
+            return False
+        before[rows[1:][same]] = rows[:-1][same]
+        after[rows[:-1][same]] = rows[1:][same]
+        for first in np.flatnonzero(np.r_[True, ~same]):
+            scanner = int(src[first])
+            if scanner in last_time:
+                if t[first] < last_time[scanner]:
+                    return False
+                before[rows[first]] = last_index[scanner]
+                after[last_index[scanner]] = rows[first]
+        for final in np.flatnonzero(np.r_[~same, True]):
+            last_time[int(src[final])] = float(t[final])
+            last_index[int(src[final])] = int(rows[final])
+    return True
+
+
 @dataclass(frozen=True)
 class ScanLineSide:
     """Each point's scan-line neighbour on one side (before or after), as step 4 reads it:

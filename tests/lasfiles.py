@@ -195,7 +195,7 @@ def _surface(rng: np.random.Generator, lo, hi, density: float) -> np.ndarray:
     return lo + rng.uniform(0, 1, (int(area * density), 3)) * span
 
 
-def street_scene(path: Path) -> Path:
+def street_scene(path: Path, shuffled: bool = False) -> Path:
     """Two scanners driving along x at 5 m/s, the second seeing each place 2 s after the first:
     a road and a wall both saw (persistent); a 12 m stretch of road only the first saw (one
     pass, attached); a canopy 15 m long over the road only the second saw, between its road
@@ -222,7 +222,7 @@ def street_scene(path: Path) -> Path:
                      _surface(rng, (20, 3.5, 1.0), (24, 3.5, 2.5), 40)])
     add(box, np.ones(len(box), int), rng.uniform(11.0, 11.3, len(box)))
     xyz, t, source = np.vstack(parts), np.concatenate(times), np.concatenate(sources)
-    order = np.argsort(t)
+    order = rng.permutation(len(t)) if shuffled else np.argsort(t)
     return write_las(path, xyz[order] + [600_000, 5_000_000, 50], gps_time=t[order] + 1000,
                      point_source_id=source[order].astype(np.uint16),
                      offsets=(600_000, 5_000_000, 0), vlrs=())

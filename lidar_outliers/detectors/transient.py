@@ -21,6 +21,8 @@ from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors.base import Detector, Prepass
 from lidar_outliers.errors import ParameterError
 
+#: Points per step of the passes over the whole file.
+STREAM_POINTS = 4_000_000
 #: What a tile reads of the whole file per point: persistent, and its scan-line neighbours
 #: before and after (file index, -1 none) and whether they are persistent.
 KNOWN_DTYPE = np.dtype([("persistent", "?"), ("before", "<i8"), ("after", "<i8"),
@@ -94,30 +96,38 @@ def persistent_values(cloud: Cloud, params: TransientParameters) -> dict[str, np
 
 def combine_scan_lines(params: TransientParameters, columns: dict[str, np.ndarray],
                        out: np.ndarray) -> dict[str, Any]:
-    """Each point's scan-line neighbours among the points that reached the stage, by a sort of
-    their (point_source_id, gps_time) over the whole file, and whether they are persistent.
+    """Each point's scan-line neighbours among the points that reached the stage, and whether
+    they are persistent, over the whole file.
 
-    Memory: about 60 bytes a point that reached the stage (times, scanners, the sort's order
-    and the neighbours; the columns and ``out`` stay on disk), 6 GB for 100 M points.
+    A file whose returns come in time order per scanner (as recorded) takes one pass of a few
+    million points at a time (:func:`~algorithms.transient.stream_scan_lines`); any other is
+    sorted by (point_source_id, gps_time) in memory: about 60 bytes a point that reached the
+    stage (times, scanners, the sort's order and the neighbours), 6 GB for 100 M points. The
+    columns and ``out`` stay on disk.
     """
-    from algorithms.transient import scan_line_neighbours
+    from algorithms.transient import scan_line_neighbours, stream_scan_lines
 
-    use = np.flatnonzero(columns["in_stage"])
-    persistent = columns["persistent"]
-    out["persistent"] = persistent
-    for name in ("before", "after"):
-        out[name] = -1
-        out[f"{name}_persistent"] = False
-    before, after = scan_line_neighbours(np.asarray(columns["gps_time"][use]),
-                                         np.asarray(columns["point_source_id"][use]))
-    for name, j in (("before", before), ("after", after)):
-        file_index = np.where(j >= 0, use[np.maximum(j, 0)], -1)
-        out[name][use] = file_index
-        out[f"{name}_persistent"][use] = (file_index >= 0) & persistent[
-            np.maximum(file_index, 0)]
-        del file_index
-    return {"scan_lines": "sorted by scanner and time over the whole file",
-            "scan_line_points": int(use.size)}
+    use, persistent = columns["in_stage"], columns["persistent"]
+    before, after = out["before"], out["after"]
+    streamed = stream_scan_lines(columns["gps_time"], columns["point_source_id"], use,
+                                 before, after, STREAM_POINTS)
+    if not streamed:
+        rows = np.flatnonzero(use)
+        before[:], after[:] = -1, -1
+        found = scan_line_neighbours(np.asarray(columns["gps_time"][rows]),
+                                     np.asarray(columns["point_source_id"][rows]))
+        for side, j in zip((before, after), found, strict=True):
+            side[rows] = np.where(j >= 0, rows[np.maximum(j, 0)], -1)
+        del rows, found
+    for s in range(0, len(out), STREAM_POINTS):
+        part = out[s:s + STREAM_POINTS]
+        part["persistent"] = persistent[s:s + STREAM_POINTS]
+        for name in ("before", "after"):
+            j = part[name]
+            part[f"{name}_persistent"] = (j >= 0) & persistent[np.maximum(j, 0)]
+    return {"scan_lines": "in file order (time order per scanner)" if streamed else
+            "sorted by scanner and time over the whole file",
+            "scan_line_points": int(np.count_nonzero(use))}
 
 
 def _free_space(

@@ -14,6 +14,7 @@ from algorithms.transient import (
     persistent_points,
     scan_line_neighbours,
     scan_line_sides,
+    stream_scan_lines,
     touching_persistent,
 )
 
@@ -119,6 +120,26 @@ def test_scan_line_neighbours():
     src = np.array([1, 1, 1, 2, 2])
     before, after = scan_line_neighbours(t, src)
     assert before.tolist() == [2, -1, 1, 4, -1] and after.tolist() == [-1, 2, 0, -1, 3]
+
+
+def test_scan_lines_stream_over_a_file_in_time_order_per_scanner():
+    """Two scanners' returns interleaved, each in time order (ties too), some points left out:
+    the pass in chunks gives the sort's neighbours; a return out of order stops it."""
+    rng = np.random.default_rng(6)
+    n = 1000
+    source = rng.integers(1, 3, n)
+    t = np.round(np.cumsum(rng.uniform(0, 1e-3, n)), 4) + 100 * source  # per scanner in order
+    use = rng.random(n) < 0.8
+    before, after = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    assert stream_scan_lines(t, source, use, before, after, chunk=97)
+    rows = np.flatnonzero(use)
+    for got, want in zip((before, after), scan_line_neighbours(t[rows], source[rows]),
+                         strict=True):
+        assert np.all(got[~use] == -1)
+        np.testing.assert_array_equal(got[rows], np.where(want >= 0, rows[want], -1))
+    t[700], t[701] = t[701] + 1.0, t[700]  # one return later than the next of its scanner
+    source[700:702] = 1
+    assert not stream_scan_lines(t, source, np.ones(n, bool), before, after, chunk=97)
 
 
 def test_surface_seen_once_on_a_single_pass_is_not_flagged():

@@ -122,7 +122,7 @@ def test_transient_job_tiles_after_its_pass_over_the_whole_file(stack, key, tmp_
         out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
         stats = client.get(f"/jobs/{job}/results/statistics").json()
     assert stats["mode"] == "tiled over workers"
-    assert stats["stages"][0]["info"]["scan_lines"].startswith("sorted")
+    assert stats["stages"][0]["info"]["scan_lines"].startswith("in file order")
     local = tmp_path / "local.las"
     local_stats = process_file(street, local, inputs)
     a, b = laspy.read(local), laspy.read(out)

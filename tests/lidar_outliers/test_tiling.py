@@ -137,7 +137,20 @@ def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
     box = (x >= 20) & (x <= 24) & (y >= 3.4) & (y <= 5.1) & (z >= 0.9) & (z <= 2.6)
     assert flagged[box].all() and not flagged[~box].any()  # the canopy too is static
     transient = next(s for s in stats["stages"] if s["detector"] == "transient")
-    assert transient["info"]["scan_lines"].startswith("sorted")
+    assert transient["info"]["scan_lines"].startswith("in file order")
+
+
+def test_transient_tiled_equals_whole_cloud_in_any_point_order(tmp_path):
+    """Records not in time order: the scan-line neighbours come from a sort over the file."""
+    street = street_scene(tmp_path / "shuffled.las", shuffled=True)
+    pipeline = {"pipeline": [STREET_TRANSIENT]}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    process_file(street, whole, pipeline)
+    stats = process_file(street, tiled, pipeline, tile_size=STREET_TILE)
+    assert stats["stages"][0]["info"]["scan_lines"].startswith("sorted")
+    a, b = _results(whole), _results(tiled)
+    assert ((np.asarray(a.outlier_flags) & 128) != 0).sum() > 300
+    _assert_same(a, b, ["transient"])
 
 
 def test_transient_tiled_keeps_the_wide_canopy_static_as_the_whole_cloud(street, tmp_path):
