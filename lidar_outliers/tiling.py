@@ -735,7 +735,8 @@ def process_tiled(
             if pending_prepass(stages, tiles.prepared) == i:
                 values = (run_tile(tiles, cell, params, stages, trajectory, prepass_of=i)
                           for cell in sorted(tiles.cells))
-                estimated[i] = prepare_stage(tiles, stages[i], values, work / "known")
+                info = prepare_stage(tiles, stages[i], values, work / "known")
+                estimated[i] = {**estimated.get(i, {}), **info}
                 continue
             values = (run_tile(tiles, cell, params, stages, trajectory, values_of=i)
                       for cell in sorted(tiles.cells))
