@@ -153,9 +153,9 @@ def test_transient_tiled_equals_whole_cloud_in_any_point_order(tmp_path):
     _assert_same(a, b, ["transient"])
 
 
-def test_transient_tiled_keeps_the_wide_canopy_static_as_the_whole_cloud(street, tmp_path):
+def test_transient_tiled_flags_the_canopy_when_max_extent_allows_it(street, tmp_path):
     """With max_extent above the canopy's 15 m the canopy floats and is flagged, whole and in
-    tiles alike (the halo, max_extent + radius, then covers the street)."""
+    tiles of 5 m alike (the halo, max_extent + radius, then spans the street)."""
     stage = {**STREET_TRANSIENT, "max_extent": 20.0}
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
     process_file(street, whole, {"pipeline": [stage]})
