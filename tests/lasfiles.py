@@ -222,6 +222,7 @@ def street_scene(path: Path, shuffled: bool = False) -> Path:
                      _surface(rng, (20, 3.5, 1.0), (24, 3.5, 2.5), 40)])
     add(box, np.ones(len(box), int), rng.uniform(11.0, 11.3, len(box)))
     xyz, t, source = np.vstack(parts), np.concatenate(times), np.concatenate(sources)
+    xyz += rng.normal(0, 0.003, xyz.shape)  # surfaces a few mm rough, as scanned
     order = rng.permutation(len(t)) if shuffled else np.argsort(t)
     return write_las(path, xyz[order] + [600_000, 5_000_000, 50], gps_time=t[order] + 1000,
                      point_source_id=source[order].astype(np.uint16),

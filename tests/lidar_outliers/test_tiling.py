@@ -116,8 +116,8 @@ STREET_TILE = 1.5  # metres: the box is 4 m long, the canopy 15 m, the one-pass 
 @pytest.mark.parametrize("pipeline", [
     [STREET_TRANSIENT],
     [STREET_TRANSIENT, {"detector": "height_field", "sigma": 0.01, "low": False}],
-    [{"detector": "height_field", "sigma": 0.01, "low": False}, STREET_TRANSIENT],
-], ids=["transient", "transient, then height_field", "height_field, then transient"])
+    [{"detector": "height_field", "low": False}, STREET_TRANSIENT],
+], ids=["transient", "transient, then height_field", "height_field sigma auto, then transient"])
 def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
     """Persistence and the scan-line neighbours come from passes over the whole file, the
     clusters from the tile and max_extent + radius around it: the whole cloud's result."""
@@ -135,7 +135,8 @@ def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
     flagged = (np.asarray(a.outlier_flags) & 128) != 0
     x, y, z = (np.asarray(a[d]) - o for d, o in (("x", 600_000), ("y", 5e6), ("z", 50)))
     box = (x >= 20) & (x <= 24) & (y >= 3.4) & (y <= 5.1) & (z >= 0.9) & (z <= 2.6)
-    assert flagged[box].all() and not flagged[~box].any()  # the canopy too is static
+    # the box flagged (by height_field first, at a few edge points), the canopy static
+    assert (np.asarray(a.outlier_flags) != 0)[box].all() and not flagged[~box].any()
     transient = next(s for s in stats["stages"] if s["detector"] == "transient")
     assert transient["info"]["scan_lines"].startswith("in file order")
 
