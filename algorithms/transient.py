@@ -107,13 +107,17 @@ def neighbour_table(xyz: np.ndarray, k: int, radius: float, rows: np.ndarray | N
                     ) -> tuple[np.ndarray, np.ndarray]:
     """(m, k) int64 indices of the k nearest other points of each of the points ``rows`` (None:
     every point, m = n) and (m, k) bool "within radius" (False also for the padding of clouds
-    with fewer than k + 1 points)."""
+    with fewer than k + 1 points).
+
+    Points as far as the k-th (within ``radius``) are taken in index order
+    (:func:`_tied_neighbours`), so the table is the same in any part of the cloud that holds
+    the points within ``radius`` in the same order (a tile's region is in file order)."""
     from scipy.spatial import cKDTree
 
     n = len(xyz)
     rows = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
     m = len(rows)
-    kk = min(k + 1, n)
+    kq = min(k + 2, n)  # one more than needed: a tie at the k-th shows
     idx = np.zeros((m, k), dtype=np.int64)
     near = np.zeros((m, k), dtype=bool)
     if m == 0:
@@ -121,19 +125,44 @@ def neighbour_table(xyz: np.ndarray, k: int, radius: float, rows: np.ndarray | N
     tree = cKDTree(xyz)
     for s in range(0, m, KNN_BATCH):
         batch = rows[s:s + KNN_BATCH]
-        d, j = tree.query(xyz[batch], k=kk, workers=-1)
-        d, j = d.reshape(-1, kk), j.reshape(-1, kk)
+        d, j = tree.query(xyz[batch], k=kq, workers=-1)
+        d, j = d.reshape(-1, kq), j.reshape(-1, kq)
         # drop each point itself (not necessarily column 0 when points coincide)
-        not_self = j != batch[:, None]
-        keep = np.cumsum(not_self, axis=1) <= k
-        sel = not_self & keep
+        not_self = (j != batch[:, None]) & (j < n)
+        rank = np.cumsum(not_self, axis=1)
+        sel = not_self & (rank <= k)
         # the selected columns first, in distance order (stable sort of "not selected")
         cols = np.argsort(~sel, axis=1, kind="stable")[:, :k]
         width = cols.shape[1]
         idx[s:s + len(j), :width] = np.take_along_axis(j, cols, axis=1)
         near[s:s + len(j), :width] = (np.take_along_axis(d, cols, axis=1) <= radius) & (
             np.take_along_axis(sel, cols, axis=1))
+        for r in _tied_rows(d, not_self, rank, k, radius):
+            idx[s + r], near[s + r] = _tied_neighbours(tree, xyz, int(batch[r]), d[r], k,
+                                                       radius)
     return idx, near
+
+
+def _tied_rows(d: np.ndarray, not_self: np.ndarray, rank: np.ndarray, k: int,
+               radius: float) -> np.ndarray:
+    """Rows whose k-th and (k+1)-th other points lie equally far, within ``radius``."""
+    kth, nxt = not_self & (rank == k), not_self & (rank == k + 1)
+    both = kth.any(axis=1) & nxt.any(axis=1)
+    r = np.arange(len(d))
+    dk, dn = d[r, np.argmax(kth, axis=1)], d[r, np.argmax(nxt, axis=1)]
+    return np.flatnonzero(both & (dk == dn) & (dk <= radius))
+
+
+def _tied_neighbours(tree, xyz: np.ndarray, point: int, d: np.ndarray, k: int,
+                     radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest other points of ``point`` when several lie as far as the k-th: by distance,
+    then index (the order in which the whole cloud and a tile hold them alike)."""
+    far = float(np.max(d[np.isfinite(d)]))
+    cand = np.asarray(tree.query_ball_point(xyz[point], far * (1 + 1e-9)), dtype=np.int64)
+    cand = cand[cand != point]
+    dist = np.sqrt(np.sum((xyz[cand] - xyz[point]) ** 2, axis=1))
+    order = np.lexsort((cand, dist))[:k]
+    return cand[order], dist[order] <= radius
 
 
 def persistent_points(gps_time: np.ndarray, idx: np.ndarray, near: np.ndarray,

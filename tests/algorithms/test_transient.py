@@ -154,6 +154,27 @@ def test_surface_seen_once_on_a_single_pass_is_not_flagged():
     assert not res.flagged.any() and res.info["floating_not_revisited"] > 0
 
 
+def test_neighbours_equally_far_are_taken_in_index_order_in_any_part():
+    """On a lattice many points lie as far as the k-th: the table of a block of the lattice with
+    the points within radius around it is the whole lattice's (and takes the lowest indices)."""
+    g = np.arange(12) * 0.125  # exact in binary: the ties are exact
+    xyz = np.stack(np.meshgrid(g, g, g[:4], indexing="ij"), axis=-1).reshape(-1, 3)
+    k, radius = 4, 0.2
+    idx, near = neighbour_table(xyz, k, radius)
+    xy = xyz[:, :2]
+    for lo in (0.0, 0.5):
+        block = np.flatnonzero(np.all((xy >= lo - radius) & (xy <= lo + 0.5 + radius), axis=1))
+        core = np.flatnonzero(np.all((xy[block] >= lo) & (xy[block] <= lo + 0.5), axis=1))
+        part_idx, part_near = neighbour_table(xyz[block], k, radius, rows=core)
+        whole = block[core]
+        np.testing.assert_array_equal(np.sort(block[part_idx], axis=1), np.sort(idx[whole], axis=1))
+        np.testing.assert_array_equal(part_near.sum(axis=1), near[whole].sum(axis=1))
+    dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
+    np.fill_diagonal(dist, np.inf)
+    first = np.lexsort((np.arange(len(xyz)), dist[0]))[:k]  # by distance, then index
+    assert sorted(idx[0]) == sorted(first)
+
+
 def test_coincident_points_exclude_only_themselves():
     xyz = np.zeros((5, 3))
     idx, near = neighbour_table(xyz, 3, 0.1)
