@@ -15,7 +15,9 @@ For n points with coordinates and GPS times:
    scanner saw once, e.g. a car's end face or a wall behind a parked car);
 3. single-epoch points are joined into clusters (links of at most ``radius``); a cluster that
    touches a persistent point (within ``radius``, among the k nearest) is part of the static
-   scene, occluded elsewhere; a cluster attached to nothing floats;
+   scene, occluded elsewhere; so is a cluster wider than ``max_extent`` (the side of its XY
+   bounding box): no vehicle or barrier arm is that long, a single-pass survey's street seen
+   once is; a cluster attached to nothing and no wider than that floats;
 4. a floating cluster is flagged only where its place was seen at another moment, else being
    seen once says nothing about motion (one scanner on one pass sees every static surface once,
    and a surface hidden from the other scanner is seen once too). Both must hold:
@@ -27,9 +29,24 @@ For n points with coordinates and GPS times:
      persistent point within ``radius`` in plan (the road under a moving car was seen by the
      other scanner or pass; nobody sees the ground under a parked car's roof).
 
-Score per point: 0 persistent, 1 single-epoch in an attached or unrevisited cluster, 2
+Score per point: 0 persistent, 1 single-epoch in an attached, wide or unrevisited cluster, 2
 single-epoch in a floating, revisited cluster (flagged; critical value 1.5). Pure numpy/scipy
 (cKDTree, sparse connected components).
+
+Tile by tile (:func:`detect_transient_given`), with the whole cloud's result: step 1 depends
+only on the points within ``radius``, so a pass over tiles with that much around them gives
+every point's persistence; the scan-line neighbours (the returns fired just before and after)
+may lie anywhere, but step 4 reads of them only whether they are persistent, which a pass over
+the whole file in time order gives (:func:`scan_line_neighbours` on every point's time and
+scanner). With both given, a tile run needs the points within ``H = max_extent + radius`` (XY)
+of its core. Proof that it then decides every core point's cluster as the whole cloud does:
+let C be a core point's cluster and C' its cluster among the tile's points (C' within C). If
+C' is wider than ``max_extent`` so is C: both are static. Else every point of C' lies within
+``max_extent`` of the core point, and any point linked to one of them (3D distance <=
+``radius``, so also in plan) within ``H`` of the core, inside the tile: nothing of C is left
+out, C' = C. The attachment (neighbours within ``radius`` of C) and the cover (persistent points
+within ``radius`` in plan of C) lie within ``H`` too, and a scan-line neighbour outside the tile
+is outside C.
 """
 
 from __future__ import annotations
@@ -55,6 +72,13 @@ class TransientParameters(Parameters):
     min_dt: float = param(
         0.5, "Seconds: a neighbour recorded this much earlier or later makes a point "
         "persistent (seen again by the other scanner or on another pass).", gt=0, le=1e6)
+    max_extent: float = param(
+        40.0, "Metres: a single-epoch cluster whose XY bounding box is wider than this is static "
+        "scene seen once (a single pass's street, a facade hidden from the other scanner), not a "
+        "moving object. 40 m: over 1.5 times the longest lorry or articulated bus (25.25 m) and "
+        "3 times a barrier arm (up to 12 m), leaving room for the smear of an object scanned "
+        "while it moves along (one keeping nearly the vehicle's speed can look longer still). "
+        "A tiled run reads this much plus radius around each tile.", gt=0, le=1000)
     free_space_radius: float = param(
         0.006, "With a trajectory file: metres a beam must pass within a point to see through "
         "it (free-space evidence).", gt=0, le=10)
@@ -72,40 +96,79 @@ class TransientParameters(Parameters):
         "placed from its own points (a profile scanner's beams turn at one rate in one plane "
         "through it); one that cannot be placed gives no free-space evidence.")
 
+
 #: Points per kNN batch.
 KNN_BATCH = 262_144
 
 
-def neighbour_table(xyz: np.ndarray, k: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """(n, k) int64 indices of each point's k nearest other points and (n, k) bool "within
-    radius" (False also for the padding of clouds with fewer than k + 1 points)."""
+def neighbour_table(xyz: np.ndarray, k: int, radius: float, rows: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(m, k) int64 indices of the k nearest other points of each of the points ``rows`` (None:
+    every point, m = n) and (m, k) bool "within radius" (False also for the padding of clouds
+    with fewer than k + 1 points).
+
+    Points as far as the k-th (within ``radius``) are taken in index order
+    (:func:`_tied_neighbours`), so the table is the same in any part of the cloud that holds
+    the points within ``radius`` in the same order (a tile's region is in file order)."""
     from scipy.spatial import cKDTree
 
     n = len(xyz)
-    kk = min(k + 1, n)
+    rows = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
+    m = len(rows)
+    kq = min(k + 2, n)  # one more than needed: a tie at the k-th shows
+    idx = np.zeros((m, k), dtype=np.int64)
+    near = np.zeros((m, k), dtype=bool)
+    if m == 0:
+        return idx, near
     tree = cKDTree(xyz)
-    idx = np.zeros((n, k), dtype=np.int64)
-    near = np.zeros((n, k), dtype=bool)
-    for s in range(0, n, KNN_BATCH):
-        d, j = tree.query(xyz[s:s + KNN_BATCH], k=kk, workers=-1)
-        d, j = d.reshape(-1, kk), j.reshape(-1, kk)
-        rows = np.arange(s, s + len(j))
+    for s in range(0, m, KNN_BATCH):
+        batch = rows[s:s + KNN_BATCH]
+        d, j = tree.query(xyz[batch], k=kq, workers=-1)
+        d, j = d.reshape(-1, kq), j.reshape(-1, kq)
         # drop each point itself (not necessarily column 0 when points coincide)
-        not_self = j != rows[:, None]
-        keep = np.cumsum(not_self, axis=1) <= k
-        sel = not_self & keep
+        not_self = (j != batch[:, None]) & (j < n)
+        rank = np.cumsum(not_self, axis=1)
+        sel = not_self & (rank <= k)
         # the selected columns first, in distance order (stable sort of "not selected")
         cols = np.argsort(~sel, axis=1, kind="stable")[:, :k]
         width = cols.shape[1]
         idx[s:s + len(j), :width] = np.take_along_axis(j, cols, axis=1)
         near[s:s + len(j), :width] = (np.take_along_axis(d, cols, axis=1) <= radius) & (
             np.take_along_axis(sel, cols, axis=1))
+        for r in _tied_rows(d, not_self, rank, k, radius):
+            idx[s + r], near[s + r] = _tied_neighbours(tree, xyz, int(batch[r]), d[r], k,
+                                                       radius)
     return idx, near
+
+
+def _tied_rows(d: np.ndarray, not_self: np.ndarray, rank: np.ndarray, k: int,
+               radius: float) -> np.ndarray:
+    """Rows whose k-th and (k+1)-th other points lie equally far, within ``radius``."""
+    kth, nxt = not_self & (rank == k), not_self & (rank == k + 1)
+    both = kth.any(axis=1) & nxt.any(axis=1)
+    r = np.arange(len(d))
+    dk, dn = d[r, np.argmax(kth, axis=1)], d[r, np.argmax(nxt, axis=1)]
+    return np.flatnonzero(both & (dk == dn) & (dk <= radius))
+
+
+def _tied_neighbours(tree, xyz: np.ndarray, point: int, d: np.ndarray, k: int,
+                     radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest other points of ``point`` when several lie as far as the k-th: by distance,
+    then index (the order in which the whole cloud and a tile hold them alike)."""
+    far = float(np.max(d[np.isfinite(d)]))
+    cand = np.asarray(tree.query_ball_point(xyz[point], far * (1 + 1e-9)), dtype=np.int64)
+    cand = cand[cand != point]
+    dist = np.sqrt(np.sum((xyz[cand] - xyz[point]) ** 2, axis=1))
+    order = np.lexsort((cand, dist))[:k]
+    return cand[order], dist[order] <= radius
 
 
 def persistent_points(gps_time: np.ndarray, idx: np.ndarray, near: np.ndarray,
                       min_dt: float) -> np.ndarray:
-    """(n,) bool: a neighbour within radius was recorded at least min_dt seconds apart."""
+    """(n,) bool: a neighbour within radius was recorded at least min_dt seconds apart.
+
+    The times are compared as given (not moved to the cloud's first time), so a run over any
+    part of the file computes the same differences."""
     dt = np.abs(gps_time[idx] - gps_time[:, None])
     return np.any(near & (dt >= min_dt), axis=1)
 
@@ -113,7 +176,8 @@ def persistent_points(gps_time: np.ndarray, idx: np.ndarray, near: np.ndarray,
 def scan_line_neighbours(gps_time: np.ndarray, source: np.ndarray | None
                          ) -> tuple[np.ndarray, np.ndarray]:
     """(n,) int64 index of the return the same scanner fired just before and just after each
-    one (-1 at a scanner's first and last return); source None: one scanner."""
+    one (-1 at a scanner's first and last return); source None: one scanner. Equal times
+    keep the points' order."""
     n = len(gps_time)
     src = np.zeros(n, dtype=np.int64) if source is None else np.asarray(source, dtype=np.int64)
     order = np.lexsort((gps_time, src))
@@ -122,6 +186,61 @@ def scan_line_neighbours(gps_time: np.ndarray, source: np.ndarray | None
     same = src[order[1:]] == src[order[:-1]]
     before[order[1:][same]] = order[:-1][same]
     after[order[:-1][same]] = order[1:][same]
+    return before, after
+
+
+def stream_scan_lines(gps_time: np.ndarray, source: np.ndarray, use: np.ndarray,
+                      before: np.ndarray, after: np.ndarray, chunk: int = 4_000_000) -> bool:
+    """:func:`scan_line_neighbours` of the points ``use`` (n,) bool, written into ``before`` and
+    ``after`` (n,) as indices among all n points (-1: none, and for points not used), in one
+    pass of ``chunk`` points at a time: for files whose returns come in time order per scanner
+    (a drive written as recorded), where the order by time is the points' own. Returns False,
+    leaving the outputs unfinished, at the first return earlier than its scanner's previous
+    one (then sort). The arrays may be memory maps: memory is a chunk's."""
+    last_time: dict[int, float] = {}
+    last_index: dict[int, int] = {}
+    n = len(gps_time)
+    for s in range(0, n, chunk):
+        rows = s + np.flatnonzero(use[s:s + chunk])
+        before[s:s + chunk] = -1
+        after[s:s + chunk] = -1
+        src = np.asarray(source[rows], dtype=np.int64)
+        order = np.argsort(src, kind="stable")  # each scanner's returns, in file order
+        rows, src, t = rows[order], src[order], np.asarray(gps_time[rows][order])
+        same = src[1:] == src[:-1]
+        if np.any(same & (t[1:] < t[:-1])):
+            return False
+        before[rows[1:][same]] = rows[:-1][same]
+        after[rows[:-1][same]] = rows[1:][same]
+        for first in np.flatnonzero(np.r_[True, ~same]):
+            scanner = int(src[first])
+            if scanner in last_time:
+                if t[first] < last_time[scanner]:
+                    return False
+                before[rows[first]] = last_index[scanner]
+                after[last_index[scanner]] = rows[first]
+        for final in np.flatnonzero(np.r_[~same, True]):
+            last_time[int(src[final])] = float(t[final])
+            last_index[int(src[final])] = int(rows[final])
+    return True
+
+
+@dataclass(frozen=True)
+class ScanLineSide:
+    """Each point's scan-line neighbour on one side (before or after), as step 4 reads it:
+    ``present`` (n,) bool, the scanner fired one; ``row`` (n,) int64, its row among the points
+    at hand (-1: none, or elsewhere in the file); ``persistent`` (n,) bool, it is persistent."""
+
+    present: np.ndarray
+    row: np.ndarray
+    persistent: np.ndarray
+
+
+def scan_line_sides(neighbours: tuple[np.ndarray, np.ndarray], persistent: np.ndarray
+                    ) -> tuple[ScanLineSide, ScanLineSide]:
+    """Both sides of :func:`scan_line_neighbours` when every neighbour is at hand."""
+    before, after = (
+        ScanLineSide(j >= 0, j, (j >= 0) & persistent[np.maximum(j, 0)]) for j in neighbours)
     return before, after
 
 
@@ -137,8 +256,17 @@ def cluster_labels(xyz: np.ndarray, single: np.ndarray, radius: float) -> tuple[
     return connected_components(graph, directed=False)
 
 
+def cluster_widths(xy: np.ndarray, label: np.ndarray, n_comp: int) -> np.ndarray:
+    """(n_comp,) the longer side of each cluster's XY bounding box (xy: (m, 2) its points)."""
+    lo = np.full((n_comp, 2), np.inf)
+    hi = np.full((n_comp, 2), -np.inf)
+    np.minimum.at(lo, label, xy)
+    np.maximum.at(hi, label, xy)
+    return np.max(hi - lo, axis=1)
+
+
 def revisited_clusters(xyz: np.ndarray, persistent: np.ndarray, single: np.ndarray,
-                       label: np.ndarray, n_comp: int, neighbours: tuple[np.ndarray, np.ndarray],
+                       label: np.ndarray, n_comp: int, sides: tuple[ScanLineSide, ...],
                        radius: float) -> np.ndarray:
     """(n_comp,) bool: the cluster's place was seen at another moment (step 4 of the module
     docstring): at least half of its scan-line neighbours outside it are persistent, and at
@@ -150,11 +278,12 @@ def revisited_clusters(xyz: np.ndarray, persistent: np.ndarray, single: np.ndarr
     cluster[single] = label
     flanks = np.zeros(n_comp)
     seen_flanks = np.zeros(n_comp)
-    for nb in neighbours:
-        j = nb[single]
-        outside = (j >= 0) & (cluster[np.maximum(j, 0)] != label)
+    for side in sides:
+        j = side.row[single]
+        inside = (j >= 0) & (cluster[np.maximum(j, 0)] == label)
+        outside = side.present[single] & ~inside
         np.add.at(flanks, label[outside], 1.0)
-        np.add.at(seen_flanks, label[outside], persistent[j[outside]])
+        np.add.at(seen_flanks, label[outside], side.persistent[single][outside])
     beside = (flanks > 0) & (2.0 * seen_flanks >= flanks)
     seen = np.flatnonzero(persistent)
     if seen.size == 0:
@@ -166,29 +295,71 @@ def revisited_clusters(xyz: np.ndarray, persistent: np.ndarray, single: np.ndarr
     return beside & under
 
 
-def floating_clusters(xyz: np.ndarray, persistent: np.ndarray, idx: np.ndarray,
-                      near: np.ndarray, radius: float,
-                      neighbours: tuple[np.ndarray, np.ndarray] | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Two (n,) bool: single-epoch points whose cluster (links <= radius) touches no persistent
-    point among the neighbour table (floating), and those of them whose place was seen at
-    another moment (:func:`revisited_clusters`, with the scan-line ``neighbours`` of
-    :func:`scan_line_neighbours`; None: every floating cluster counts as revisited)."""
+@dataclass(frozen=True)
+class Clusters:
+    """Steps 3-4 on n points, three (n,) bool: ``floating`` single-epoch points whose cluster
+    touches no persistent point and is no wider than ``max_extent``, ``flagged`` those of them
+    whose place was seen at another moment, ``wide`` single-epoch points of clusters wider than
+    ``max_extent``."""
+
+    floating: np.ndarray
+    flagged: np.ndarray
+    wide: np.ndarray
+
+
+def floating_clusters(xyz: np.ndarray, persistent: np.ndarray, touches: np.ndarray,
+                      radius: float, sides: tuple[ScanLineSide, ...] | None = None,
+                      max_extent: float = np.inf) -> Clusters:
+    """Steps 3-4 (:class:`Clusters`). ``touches`` (n,) bool: a persistent point is among the
+    point's neighbours (:func:`neighbour_table`) within ``radius`` (read on single-epoch
+    points). ``sides``: the scan-line neighbours (:func:`scan_line_sides`) that
+    :func:`revisited_clusters` reads; None: every floating cluster counts as revisited."""
+    n = len(xyz)
     single = np.flatnonzero(~persistent)
-    floating = np.zeros(len(xyz), dtype=bool)
-    flagged = np.zeros(len(xyz), dtype=bool)
+    floating, flagged, wide = (np.zeros(n, dtype=bool) for _ in range(3))
     if single.size == 0:
-        return floating, flagged
-    touches = np.any(near[single] & persistent[idx[single]], axis=1)
+        return Clusters(floating, flagged, wide)
     n_comp, label = cluster_labels(xyz, single, radius)
     attached = np.zeros(n_comp, dtype=bool)
-    attached[label[touches]] = True
-    floating[single[~attached[label]]] = True
-    if neighbours is None:
-        return floating, floating.copy()
-    revisited = revisited_clusters(xyz, persistent, single, label, n_comp, neighbours, radius)
-    flagged[single[~attached[label] & revisited[label]]] = True
-    return floating, flagged
+    attached[label[touches[single]]] = True
+    too_wide = cluster_widths(xyz[single, :2], label, n_comp) > max_extent
+    wide[single[too_wide[label]]] = True
+    free = ~attached & ~too_wide
+    floating[single[free[label]]] = True
+    if sides is None:
+        return Clusters(floating, floating.copy(), wide)
+    revisited = revisited_clusters(xyz, persistent, single, label, n_comp, sides, radius)
+    flagged[single[(free & revisited)[label]]] = True
+    return Clusters(floating, flagged, wide)
+
+
+def touching_persistent(idx: np.ndarray, near: np.ndarray, persistent: np.ndarray) -> np.ndarray:
+    """(m,) bool: a persistent point is among the table's neighbours within radius."""
+    return np.any(near & persistent[idx], axis=1)
+
+
+def _checked(xyz: np.ndarray, n_name: str, arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """xyz as (n, 3) float64, refusing bad shapes and values of it and of ``arrays``."""
+    arr = np.asarray(xyz, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ParameterError(f"xyz must have shape (n, 3), got {arr.shape}")
+    for name, values in arrays.items():
+        if np.shape(values) != (len(arr),):
+            raise ParameterError(f"xyz must have shape (n, 3) and {name} ({n_name},), got "
+                                 f"{arr.shape} and {np.shape(values)}")
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError("xyz or gps_time holds NaN or infinite values")
+    return arr
+
+
+def _result(persistent: np.ndarray, clusters: Clusters, info: dict) -> DetectorResult:
+    flagged = clusters.flagged
+    score = np.where(persistent, 0.0, np.where(flagged, 2.0, 1.0))
+    info.update(points_tested=len(persistent), points_flagged=int(flagged.sum()),
+                single_epoch=int((~persistent).sum()),
+                floating_not_revisited=int((clusters.floating & ~flagged).sum()),
+                single_epoch_wide=int(clusters.wide.sum()))
+    return DetectorResult(score=score, flagged=flagged, critical_value=1.5, info=info)
 
 
 def detect_transient(
@@ -199,36 +370,62 @@ def detect_transient(
     k: int = 24,
     radius: float = 0.2,
     min_dt: float = 0.5,
+    max_extent: float = 40.0,
+    centre: bool = True,
 ) -> DetectorResult:
     """Flag floating single-epoch clusters (module docstring).
 
     xyz (n, 3) metres, gps_time (n,) seconds (finite), source (n,) the scanner of each return
-    (point_source_id; None: one scanner). Returns a DetectorResult with score (n,) in {0, 1,
-    2}, flagged = score == 2, critical_value 1.5.
+    (point_source_id; None: one scanner). ``centre``: move xyz to its mean first (False: xyz is
+    in a local frame already, and a tiled run, :func:`detect_transient_given`, computes on the
+    same numbers). Returns a DetectorResult with score (n,) in {0, 1, 2}, flagged = score ==
+    2, critical_value 1.5.
     """
-    arr = np.asarray(xyz, dtype=np.float64)
+    arr = _checked(xyz, "n", {"gps_time": gps_time})
     t = np.asarray(gps_time, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3 or t.shape != (len(arr),):
-        raise ParameterError(f"xyz must have shape (n, 3) and gps_time (n,), got {arr.shape} "
-                             f"and {t.shape}")
-    if not (np.all(np.isfinite(arr)) and np.all(np.isfinite(t))):
+    if not np.all(np.isfinite(t)):
         raise ParameterError("xyz or gps_time holds NaN or infinite values")
     if source is not None and np.shape(source) != (len(arr),):
         raise ParameterError(f"source must have shape ({len(arr)},), got {np.shape(source)}")
-    TransientParameters(k=k, radius=radius, min_dt=min_dt)
+    TransientParameters(k=k, radius=radius, min_dt=min_dt, max_extent=max_extent)
     n = len(arr)
-    info = {"k": int(k), "radius": float(radius), "min_dt": float(min_dt), "points": n}
+    info = {"k": int(k), "radius": float(radius), "min_dt": float(min_dt),
+            "max_extent": float(max_extent), "points": n}
     if n < 2:
-        score = np.zeros(n)
-        info.update(points_tested=n, points_flagged=0, single_epoch=n, floating_not_revisited=0)
-        return DetectorResult(score, np.zeros(n, bool), 1.5, info)
-    local = arr - arr.mean(axis=0)
+        info.update(points_tested=n, points_flagged=0, single_epoch=n, floating_not_revisited=0,
+                    single_epoch_wide=0)
+        return DetectorResult(np.zeros(n), np.zeros(n, bool), 1.5, info)
+    local = arr - arr.mean(axis=0) if centre else arr
     idx, near = neighbour_table(local, k, radius)
-    persistent = persistent_points(t - t.min(), idx, near, min_dt)
-    floating, flagged = floating_clusters(local, persistent, idx, near, radius,
-                                          scan_line_neighbours(t, source))
-    score = np.where(persistent, 0.0, np.where(flagged, 2.0, 1.0))
-    info.update(points_tested=n, points_flagged=int(flagged.sum()),
-                single_epoch=int((~persistent).sum()),
-                floating_not_revisited=int((floating & ~flagged).sum()))
-    return DetectorResult(score=score, flagged=flagged, critical_value=1.5, info=info)
+    persistent = persistent_points(t, idx, near, min_dt)
+    sides = scan_line_sides(scan_line_neighbours(t, source), persistent)
+    clusters = floating_clusters(local, persistent, touching_persistent(idx, near, persistent),
+                                 radius, sides, max_extent)
+    return _result(persistent, clusters, info)
+
+
+def detect_transient_given(
+    xyz: np.ndarray,
+    persistent: np.ndarray,
+    sides: tuple[ScanLineSide, ScanLineSide],
+    *,
+    k: int = 24,
+    radius: float = 0.2,
+    max_extent: float = 40.0,
+) -> DetectorResult:
+    """Steps 3-4 on a tile's points with steps 1-2 taken from the whole file (module
+    docstring): ``persistent`` (n,) bool and the scan-line ``sides`` of each point. xyz (n, 3)
+    in the frame the whole cloud's run used (no centring). Exact for the points within
+    ``max_extent + radius`` (XY) of the tile's edge inward; returns as
+    :func:`detect_transient`."""
+    arr = _checked(xyz, "n", {"persistent": persistent})
+    TransientParameters(k=k, radius=radius, max_extent=max_extent)
+    persistent = np.asarray(persistent, dtype=bool)
+    info = {"k": int(k), "radius": float(radius), "max_extent": float(max_extent),
+            "points": len(arr)}
+    single = np.flatnonzero(~persistent)
+    idx, near = neighbour_table(arr, k, radius, rows=single)
+    touches = np.zeros(len(arr), dtype=bool)
+    touches[single] = touching_persistent(idx, near, persistent)
+    clusters = floating_clusters(arr, persistent, touches, radius, sides, max_extent)
+    return _result(persistent, clusters, info)

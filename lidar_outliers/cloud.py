@@ -32,6 +32,11 @@ class Cloud:
         Lower-left XY corner of the whole file in the local frame, where grids of square cells
         (``section``) start; None: the corner of the points at hand. A subset and a tile keep
         it, so their cells are the whole cloud's.
+    known : dict of (n,) structured arrays, or None
+        Per detector, what a pass over the whole file gave each point (its ``index`` in the
+        file among it) when the cloud is a tile's region
+        (:class:`~lidar_outliers.detectors.base.Prepass`); None: the cloud is all there is. A
+        subset keeps its points' rows.
     """
 
     xyz: np.ndarray
@@ -42,6 +47,7 @@ class Cloud:
     intensity: np.ndarray | None = None
     trajectory: np.ndarray | None = None
     anchor: np.ndarray | None = None
+    known: dict[str, np.ndarray] | None = None
 
     @classmethod
     def from_arrays(
@@ -91,6 +97,7 @@ class Cloud:
             intensity=None if self.intensity is None else self.intensity[index],
             trajectory=self.trajectory,
             anchor=self.anchor,
+            known=None if self.known is None else {k: v[index] for k, v in self.known.items()},
         )
 
     def with_trajectory(self, trajectory: np.ndarray) -> Cloud:

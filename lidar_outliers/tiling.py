@@ -16,6 +16,12 @@ A pipeline that starts with stages along each scanner's time series (``temporal`
 runs them first over the whole file, streamed in time order (:mod:`lidar_outliers.prepass`),
 then the rest tile by tile on the points they left; the merge starts from their arrays.
 
+A stage that reads facts of the whole file (:class:`~lidar_outliers.detectors.base.Prepass`:
+``transient``'s scan-line neighbours) gets them before its tiles run: each tile gives its points'
+values (:func:`run_tile` with ``prepass_of``), :func:`prepare_stage` gathers them in file order
+on disk, combines them over the whole file and writes each cell's part beside the cell's file,
+where :func:`run_tile` reads them for its region (``Cloud.known``).
+
 The tiles are independent: :func:`process_tiled` runs them one after another here, the job
 service spreads them over its workers (:mod:`lidar_outliers.jobs.tiles`).
 """
@@ -88,6 +94,8 @@ class TileSet:
     has_gps_time: bool
     cells: dict[tuple[int, int], int]  # (column, row) -> points
     gps_range: tuple[float, float] | None = None  # finite gps_time min, max (None: no finite)
+    #: Detectors whose pre-pass facts lie beside the cells (:func:`prepare_stage`).
+    prepared: tuple[str, ...] = ()
     #: Brings a cell's file into ``folder`` when it is not there (a worker that got the
     #: manifest only fetches the cells its tile needs from the job's storage).
     fetch: Callable[[tuple[int, int], Path], None] | None = None
@@ -100,6 +108,7 @@ class TileSet:
                 "origin": self.origin.tolist(), "points": self.points,
                 "has_gps_time": self.has_gps_time,
                 "gps_range": list(self.gps_range) if self.gps_range else None,
+                "prepared": list(self.prepared),
                 "cells": [[c, r, n] for (c, r), n in sorted(self.cells.items())]}
 
     @classmethod
@@ -107,7 +116,8 @@ class TileSet:
         return cls(Path(folder), float(doc["tile_size"]), np.asarray(doc["anchor"]),
                    np.asarray(doc["origin"]), int(doc["points"]), bool(doc["has_gps_time"]),
                    {(int(c), int(r)): int(n) for c, r, n in doc["cells"]},
-                   tuple(doc["gps_range"]) if doc.get("gps_range") else None)
+                   tuple(doc["gps_range"]) if doc.get("gps_range") else None,
+                   prepared=tuple(doc.get("prepared", ())))
 
     def gps_probe(self) -> np.ndarray | None:
         """Times that :func:`~lidar_outliers.pipeline.usable_gps_time` judges as it would the
@@ -125,6 +135,18 @@ class TileSet:
 
 def cell_name(cell: tuple[int, int]) -> str:
     return f"cell_{cell[0]}_{cell[1]}.bin"
+
+
+def known_name(detector: str, cell: tuple[int, int]) -> str:
+    return f"known_{detector}_{cell[0]}_{cell[1]}.bin"
+
+
+def known_dtype(detector: str) -> np.dtype:
+    """One point's record in a cell's file of a detector's pre-pass facts: its index in the
+    file, then the detector's :attr:`~lidar_outliers.detectors.base.Prepass.dtype`."""
+    prepass = get_detector(detector).prepass
+    assert prepass is not None
+    return np.dtype([("index", "<i8"), *[(f, prepass.dtype[f]) for f in prepass.dtype.names or ()]])
 
 
 def result_name(cell: tuple[int, int]) -> str:
@@ -213,11 +235,16 @@ def _append_by_cell(rec: np.ndarray, ij: np.ndarray, folder: Path,
 def stage_halos(stages: Iterable[StageModel], trajectory: bool = False) -> list[float] | str:
     """Each stage's declared halo, or the reason the pipeline cannot run in tiles."""
     halos = []
+    prepassed: set[str] = set()
     for stage in stages:
         spec = get_detector(stage.detector)
         if trajectory and spec.uses_trajectory:
             return (f"{stage.detector} with a trajectory follows beams across the whole cloud "
                     "(free-space evidence)")
+        if spec.prepass is not None:
+            if stage.detector in prepassed:  # its facts from the whole file are kept by name
+                return f"{stage.detector} comes twice, and each needs a pass over the whole file"
+            prepassed.add(stage.detector)
         halo = spec.halo(stage.parameters())
         if halo is None:
             return (f"{stage.detector}: {spec.whole_cloud}" if spec.whole_cloud else
@@ -278,10 +305,51 @@ def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = 
     )
 
 
+def read_known(tiles: TileSet, detector: str, cell: tuple[int, int]) -> np.ndarray:
+    """A cell's records of a detector's pre-pass facts (:func:`prepare_stage`)."""
+    path = tiles.folder / known_name(detector, cell)
+    if tiles.fetch is not None and not path.exists():
+        tiles.fetch(cell, path)
+    dtype = known_dtype(detector)
+    try:
+        size = path.stat().st_size
+        if size != tiles.cells[cell] * dtype.itemsize:
+            raise TileError(f"tile file {path.name} holds {size} bytes, expected "
+                            f"{tiles.cells[cell]} points")
+        return np.fromfile(path, dtype=dtype)
+    except OSError as exc:
+        raise TileError(f"tile file {path.name} cannot be read: {exc.strerror}") from None
+
+
+def region_known(tiles: TileSet, rec: np.ndarray) -> dict[str, np.ndarray] | None:
+    """The pre-pass facts of a region's points (``rec``), in its order, per detector."""
+    if not tiles.prepared or len(rec) == 0:
+        return None
+    ij = np.unique(cells_of(rec["xyz"][:, :2], tiles.anchor, tiles.tile_size), axis=0)
+    known = {}
+    for detector in tiles.prepared:
+        parts = np.concatenate([read_known(tiles, detector, (int(c), int(r))) for c, r in ij])
+        order = np.argsort(parts["index"], kind="stable")
+        pos = order[np.minimum(np.searchsorted(parts["index"], rec["index"], sorter=order),
+                               len(order) - 1)]
+        if not np.array_equal(parts["index"][pos], rec["index"]):
+            raise TileError(f"the {detector} pre-pass files do not hold every point of the tile")
+        known[detector] = parts[pos]
+    return known
+
+
+def _check_prepared(tiles: TileSet, stages: list[StageModel]) -> None:
+    """A stage with a pre-pass runs in a tile only with its facts from the whole file."""
+    for stage in stages:
+        if get_detector(stage.detector).prepass and stage.detector not in tiles.prepared:
+            raise LidarOutliersError(f"{stage.detector} runs in tiles only after its pass over "
+                                     "the whole file")
+
+
 def run_tile(
     tiles: TileSet, cell: tuple[int, int], params: PipelineParams, stages: list[StageModel],
     trajectory: np.ndarray | None = None, values_of: int | None = None,
-    dropped: np.ndarray | None = None,
+    prepass_of: int | None = None, dropped: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The pipeline's result for the points of ``cell``: the whole cloud's result for them.
 
@@ -293,6 +361,11 @@ def run_tile(
     ``values_of=i``: instead, the values stage i estimates a parameter from
     (:class:`~lidar_outliers.detectors.base.Estimate`) for the points of the cell: ``index``
     and ``values`` (NaN where none, and for points earlier stages flagged).
+
+    ``prepass_of=i``: instead, stage i's pre-pass values
+    (:class:`~lidar_outliers.detectors.base.Prepass`, with its halo) for the points of the cell:
+    ``index``, ``in_stage`` (earlier stages left the point) and ``value_<name>`` (zero where
+    not in the stage).
 
     ``dropped``: the sorted file indices of the points streamed stages flagged before
     (:func:`dropped_points`): ``stages`` run on the other points, as the whole pipeline runs
@@ -306,7 +379,13 @@ def run_tile(
         raise LidarOutliersError(f"the pipeline cannot run in tiles: {halos}")
     if values_of is not None:
         stages, halos = stages[:values_of + 1], halos[:values_of + 1]
-    run = stages if values_of is None else stages[:-1]
+    if prepass_of is not None:
+        prepass = get_detector(stages[prepass_of].detector).prepass
+        assert prepass is not None
+        stages = stages[:prepass_of + 1]
+        halos = [*halos[:prepass_of], float(prepass.halo(stages[-1].parameters()))]
+    run = stages if values_of is None and prepass_of is None else stages[:-1]
+    _check_prepared(tiles, run)
     tile_params = params.model_copy(update={"pipeline": run or None, "reference_classes": None})
     while True:
         total = float(sum(halos))
@@ -314,6 +393,7 @@ def run_tile(
         if dropped is not None:
             rec = rec[~_among(rec["index"], dropped)]
         cloud = tile_cloud(tiles, rec, local_traj)
+        cloud.known = region_known(tiles, rec)
         result = run_pipeline(cloud, tile_params) if run else None
         flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
         wider = None if everything else _reach_violations(
@@ -325,6 +405,11 @@ def run_tile(
     if values_of is not None:
         return {"index": rec["index"][core], "halo": np.float64(sum(halos)),
                 "values": _stage_values(cloud, stages[-1], flags)[core]}
+    if prepass_of is not None:
+        values = _prepass_values(cloud, stages[-1], flags)
+        return {"index": rec["index"][core], "halo": np.float64(sum(halos)),
+                "in_stage": (flags == 0)[core],
+                **{f"value_{name}": v[core] for name, v in values.items()}}
     assert result is not None
     out: dict[str, Any] = {"index": rec["index"][core], "flags": result.flags[core],
                            "halo": np.float64(sum(halos))}
@@ -376,6 +461,84 @@ def _stage_values(cloud: Cloud, stage: StageModel, flags: np.ndarray) -> np.ndar
         sub = cloud if index.size == len(cloud) else cloud.subset(index)
         out[index] = estimate.values(sub, stage.parameters())
     return out
+
+
+def _prepass_values(cloud: Cloud, stage: StageModel, flags: np.ndarray) -> dict[str, np.ndarray]:
+    """(n,) arrays of a stage's pre-pass values on the points earlier stages left (0 else)."""
+    prepass = get_detector(stage.detector).prepass
+    assert prepass is not None
+    index = np.flatnonzero(flags == 0)
+    sub = cloud if index.size == len(cloud) else cloud.subset(index)
+    out = {}
+    for name, values in prepass.values(sub, stage.parameters()).items():
+        full = np.zeros(len(cloud), dtype=values.dtype)
+        full[index] = values
+        out[name] = full
+    return out
+
+
+def pending_prepass(stages: list[StageModel], prepared: Iterable[str]) -> int | None:
+    """The first stage whose facts from the whole file are not gathered yet, if any."""
+    done = set(prepared)
+    for i, stage in enumerate(stages):
+        if get_detector(stage.detector).prepass is not None and stage.detector not in done:
+            return i
+    return None
+
+
+def prepare_stage(
+    tiles: TileSet, stage: StageModel, results: Iterable[dict[str, Any]], folder: Path,
+    put: Callable[[Path], None] | None = None,
+) -> dict[str, Any]:
+    """Gather the tiles' pre-pass values of ``stage`` in file order on disk, combine them over
+    the whole file (:class:`~lidar_outliers.detectors.base.Prepass`) and write each cell's part
+    beside its file (``put``: hands each such file on, the job's storage); returns the
+    statistics' info on it. Memory: what ``combine`` takes, the columns stay on disk."""
+    spec = get_detector(stage.detector)
+    assert spec.prepass is not None
+    folder.mkdir(parents=True, exist_ok=True)
+    n = tiles.points
+
+    def mapped(name: str, dtype: Any) -> np.ndarray:
+        arr = np.lib.format.open_memmap(folder / f"{stage.detector}_{name}.npy", mode="w+",
+                                        dtype=dtype, shape=(n,))
+        arr[...] = np.zeros((), dtype=dtype)
+        return arr
+
+    columns = {"in_stage": mapped("in_stage", np.bool_)}
+    for res in results:
+        index = res["index"]
+        columns["in_stage"][index] = res["in_stage"]
+        for key in (k for k in res if k.startswith("value_")):
+            if key[6:] not in columns:
+                columns[key[6:]] = mapped(key[6:], res[key].dtype)
+            columns[key[6:]][index] = res[key]
+    columns["gps_time"] = mapped("gps_time", np.float64)
+    columns["point_source_id"] = mapped("point_source_id", np.uint16)
+    for cell in tiles.cells:
+        rec = read_cell(tiles, cell)
+        columns["gps_time"][rec["index"]] = rec["gps_time"]
+        columns["point_source_id"][rec["index"]] = rec["point_source_id"]
+    out = mapped("known", spec.prepass.dtype)
+    info = spec.prepass.combine(stage.parameters(), columns, out)
+    with_index = known_dtype(stage.detector)
+    for cell in sorted(tiles.cells):
+        index = read_cell(tiles, cell)["index"]
+        known = np.empty(len(index), dtype=with_index)
+        known["index"] = index
+        part = out[index]
+        for f in spec.prepass.dtype.names or ():
+            known[f] = part[f]
+        path = tiles.folder / known_name(stage.detector, cell)
+        fd, tmp = tempfile.mkstemp(dir=tiles.folder, prefix=".part-", suffix=".bin")
+        with os.fdopen(fd, "wb") as fh:
+            known.tofile(fh)
+        os.replace(tmp, path)
+        if put is not None:
+            put(path)
+    del columns, out
+    tiles.prepared = (*tiles.prepared, stage.detector)
+    return info
 
 
 def pending_estimate(stages: list[StageModel]) -> int | None:
@@ -608,6 +771,14 @@ def noise_truth(tiles: TileSet, reference: list[int] | None, folder: Path) -> np
 # --------------------------------------------------------------------------- one machine
 
 
+def next_whole_file_step(stages: list[StageModel], prepared: Iterable[str]) -> int | None:
+    """The first stage still waiting for an estimate or a pre-pass over the whole file (each
+    runs the stages before it, so the earliest goes first)."""
+    steps = [i for i in (pending_estimate(stages), pending_prepass(stages, prepared))
+             if i is not None]
+    return min(steps, default=None)
+
+
 def process_tiled(
     in_path: Path, out_path: Path, params: PipelineParams, facts: lasio.LasFacts,
     evidence: dict[str, Any] | None, *, tile_size: float, compress: bool,
@@ -637,10 +808,17 @@ def process_tiled(
         dropped = None if first is None else dropped_points(first.flags)
         rest = stages[lead:]
         estimated: dict[int, dict[str, Any]] = {}
-        while (i := pending_estimate(rest)) is not None:
+        while (i := next_whole_file_step(rest, tiles.prepared)) is not None:
+            if pending_prepass(rest, tiles.prepared) == i:
+                values = (run_tile(tiles, cell, params, rest, trajectory, prepass_of=i,
+                                   dropped=dropped) for cell in sorted(tiles.cells))
+                info = prepare_stage(tiles, rest[i], values, work / "known")
+                estimated[lead + i] = {**estimated.get(lead + i, {}), **info}
+                continue
             values = (run_tile(tiles, cell, params, rest, trajectory, values_of=i,
                                dropped=dropped) for cell in sorted(tiles.cells))
-            pinned, estimated[lead + i] = pin_stage(tiles, rest[i], values, work / "values")
+            pinned, info = pin_stage(tiles, rest[i], values, work / "values")
+            estimated[lead + i] = {**estimated.get(lead + i, {}), **info}
             rest = [*rest[:i], pinned, *rest[i + 1:]]
         stages = [*stages[:lead], *rest]
         results = []

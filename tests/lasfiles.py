@@ -203,3 +203,50 @@ def scanned_tile_scene(path: Path, *, shuffled: bool = False, seed: int = 3) -> 
     las.points = las.points[order]
     las.write(str(path))
     return Path(path)
+
+
+def _surface(rng: np.random.Generator, lo, hi, density: float) -> np.ndarray:
+    """Points uniform in the box lo..hi (one side of zero size: a plane), ``density`` a m2."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    span = hi - lo
+    area = np.prod(np.sort(span)[1:])
+    return lo + rng.uniform(0, 1, (int(area * density), 3)) * span
+
+
+def street_scene(path: Path, shuffled: bool = False) -> Path:
+    """Two scanners driving along x at 5 m/s, the second seeing each place 2 s after the first:
+    a road and a wall both saw (persistent); a 12 m stretch of road only the first saw (one
+    pass, attached); a canopy 15 m long over the road only the second saw, between its road
+    returns (floating and revisited, but wider than max_extent); a 4 m box floating over the
+    road, seen by the first scanner while it swept the road 15 m behind (moving, flagged)."""
+    rng = np.random.default_rng(8)
+    parts, times, sources = [], [], []
+
+    def add(xyz: np.ndarray, source: np.ndarray, t: np.ndarray) -> None:
+        parts.append(xyz), sources.append(source), times.append(t)
+
+    def seen(xyz: np.ndarray, source: np.ndarray) -> np.ndarray:
+        return 10 + xyz[:, 0] / 5 + 2.0 * (source == 2) + rng.uniform(0, 0.01, len(xyz))
+
+    for lo, hi in (((0, 0, 0), (30, 6, 0)), ((0, 7, 0), (30, 7, 3))):  # road and wall
+        xyz = _surface(rng, lo, hi, 25)
+        source = rng.integers(1, 3, len(xyz))
+        add(xyz, source, seen(xyz, source))
+    once = _surface(rng, (30, 0, 0), (42, 6, 0), 25)  # one pass
+    add(once, np.ones(len(once), int), seen(once, np.ones(len(once))))
+    canopy = _surface(rng, (5, 2, 4.5), (20, 3, 4.5), 40)
+    add(canopy, np.full(len(canopy), 2), seen(canopy, np.full(len(canopy), 2)))
+    box = np.vstack([_surface(rng, (20, 3.5, 2.5), (24, 5, 2.5), 40),
+                     _surface(rng, (20, 3.5, 1.0), (24, 3.5, 2.5), 40)])
+    add(box, np.ones(len(box), int), rng.uniform(11.0, 11.3, len(box)))
+    xyz, t, source = np.vstack(parts), np.concatenate(times), np.concatenate(sources)
+    xyz += rng.normal(0, 0.003, xyz.shape)  # surfaces a few mm rough, as scanned
+    order = rng.permutation(len(t)) if shuffled else np.argsort(t)
+    return write_las(path, xyz[order] + [600_000, 5_000_000, 50], gps_time=t[order] + 1000,
+                     point_source_id=source[order].astype(np.uint16),
+                     offsets=(600_000, 5_000_000, 0), vlrs=())
+
+
+#: transient's stage on :func:`street_scene`: radius for its density, max_extent below the
+#: canopy's length and above the box's.
+STREET_TRANSIENT = {"detector": "transient", "radius": 0.5, "max_extent": 6.0}

@@ -81,6 +81,29 @@ class Estimate:
     pin: Callable[[Any, list[np.ndarray]], tuple[Any, dict[str, Any]]]
 
 
+@dataclass(frozen=True)
+class Prepass:
+    """Per-point facts a detector reads from the whole file, gathered before its tiles run
+    (``transient``: which points are persistent, and the scan-line neighbours, which may lie
+    anywhere).
+
+    ``halo(params)``: XY metres around a tile that ``values`` needs to be exact for the tile's
+    points. ``values(cloud, params)``: per-point arrays by name, (n,) each, on the stage's
+    input of a tile's region. ``combine(params, columns, out)``: fills ``out`` ((n,) records of
+    ``dtype`` in file order) from ``columns``: every point's ``values`` in file order, plus
+    ``in_stage`` (bool: the point reached the stage), ``gps_time`` and ``point_source_id``, as
+    (n,) arrays on disk; returns the statistics' info on it. The detector's ``run`` then finds,
+    on a tile, ``cloud.known[name]``: its points' records of ``out`` and their ``index`` in the
+    file. A tiled run gathers the values tile by tile, combines, then runs the tiles with the
+    detector's ``halo`` (:mod:`lidar_outliers.tiling`).
+    """
+
+    halo: Callable[[Any], float]
+    values: Callable[[Cloud, Any], dict[str, np.ndarray]]
+    dtype: np.dtype
+    combine: Callable[[Any, dict[str, np.ndarray], np.ndarray], dict[str, Any]]
+
+
 def no_halo(_params: Any) -> None:
     """The default: not declared, so the stage runs on the whole cloud."""
     return None
@@ -120,6 +143,8 @@ class Detector:
     ``streams``: the result depends on each scanner's time series alone (no XY neighbourhood),
     so a tiled run whose pipeline starts with such stages streams them over the file in time
     order first and tiles the rest (:mod:`lidar_outliers.prepass`).
+    ``prepass``: facts from the whole file the tiles read (:class:`Prepass`); the ``halo`` then
+    holds with them given.
     """
 
     name: str
@@ -135,6 +160,7 @@ class Detector:
     whole_cloud: str | None = None
     estimate: Estimate | None = None
     streams: bool = False
+    prepass: Prepass | None = None
     model: type[StageModel] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

@@ -1,6 +1,13 @@
 """``transient``: clusters seen at one moment only and attached to nothing (moving objects,
 :mod:`algorithms.transient`); with a trajectory also points that other beams saw through
-(free-space evidence, :mod:`algorithms.free_space`), ORed into one flag."""
+(free-space evidence, :mod:`algorithms.free_space`), ORed into one flag.
+
+Without a trajectory it runs tile by tile: a pre-pass over tiles (halo ``radius``) finds the
+persistent points, one pass over the whole file in time order the scan-line neighbours
+(:func:`combine_scan_lines`), and the tiles (halo ``max_extent + radius``) read both
+(:func:`algorithms.transient.detect_transient_given`). With a trajectory the beams cross the
+whole cloud, so it runs whole.
+"""
 
 from __future__ import annotations
 
@@ -9,10 +16,17 @@ from typing import Any
 import numpy as np
 
 from algorithms.result import DetectorResult
-from algorithms.transient import TransientParameters
+from algorithms.transient import ScanLineSide, TransientParameters
 from lidar_outliers.cloud import Cloud
-from lidar_outliers.detectors.base import Detector
+from lidar_outliers.detectors.base import Detector, Prepass
 from lidar_outliers.errors import ParameterError
+
+#: Points per step of the passes over the whole file.
+STREAM_POINTS = 4_000_000
+#: What a tile reads of the whole file per point: persistent, and its scan-line neighbours
+#: before and after (file index, -1 none) and whether they are persistent.
+KNOWN_DTYPE = np.dtype([("persistent", "?"), ("before", "<i8"), ("after", "<i8"),
+                        ("before_persistent", "?"), ("after_persistent", "?")])
 
 
 def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
@@ -24,9 +38,13 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
     from algorithms.transient import detect_transient
 
     gps_time = cloud.require_gps_time("transient")
+    known = None if cloud.known is None else cloud.known.get("transient")
+    if known is not None and cloud.trajectory is None:
+        return _run_given(cloud, known, params)
+    # cloud.xyz is in the file's local frame: a tiled run computes on the same numbers
     result = detect_transient(
         cloud.xyz, gps_time, cloud.point_source_id, k=params.k, radius=params.radius,
-        min_dt=params.min_dt)
+        min_dt=params.min_dt, max_extent=params.max_extent, centre=False)
     if cloud.trajectory is None:
         result.info["free_space"] = "no trajectory file given"
         return result
@@ -43,6 +61,73 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
     )
     return DetectorResult(score=score, flagged=flagged, critical_value=result.critical_value,
                           info=info)
+
+
+def _run_given(cloud: Cloud, known: np.ndarray, params: TransientParameters) -> DetectorResult:
+    """A tile's run with persistence and scan-line neighbours from the whole file."""
+    from algorithms.transient import detect_transient_given
+
+    index = known["index"]  # ascending: a tile's points are in file order
+    sides = []
+    for name in ("before", "after"):
+        j = known[name]
+        row = np.minimum(np.searchsorted(index, j), max(len(index) - 1, 0))
+        here = (j >= 0) & (index[row] == j) if len(index) else np.zeros(0, bool)
+        sides.append(ScanLineSide(j >= 0, np.where(here, row, -1),
+                                  np.asarray(known[f"{name}_persistent"], dtype=bool)))
+    result = detect_transient_given(cloud.xyz, known["persistent"], (sides[0], sides[1]),
+                                    k=params.k, radius=params.radius,
+                                    max_extent=params.max_extent)
+    result.info.update(min_dt=params.min_dt, free_space="no trajectory file given")
+    return result
+
+
+def persistent_values(cloud: Cloud, params: TransientParameters) -> dict[str, np.ndarray]:
+    """Step 1 on a tile's region: ``persistent`` (n,) bool, exact for the points with every
+    point within ``radius`` at hand."""
+    from algorithms.transient import neighbour_table, persistent_points
+
+    gps_time = cloud.require_gps_time("transient")
+    if not (np.all(np.isfinite(cloud.xyz)) and np.all(np.isfinite(gps_time))):
+        raise ParameterError("xyz or gps_time holds NaN or infinite values")
+    idx, near = neighbour_table(cloud.xyz, params.k, params.radius)
+    return {"persistent": persistent_points(gps_time, idx, near, params.min_dt)}
+
+
+def combine_scan_lines(params: TransientParameters, columns: dict[str, np.ndarray],
+                       out: np.ndarray) -> dict[str, Any]:
+    """Each point's scan-line neighbours among the points that reached the stage, and whether
+    they are persistent, over the whole file.
+
+    A file whose returns come in time order per scanner (as recorded) takes one pass of a few
+    million points at a time (:func:`~algorithms.transient.stream_scan_lines`); any other is
+    sorted by (point_source_id, gps_time) in memory: about 60 bytes a point that reached the
+    stage (times, scanners, the sort's order and the neighbours), 6 GB for 100 M points. The
+    columns and ``out`` stay on disk.
+    """
+    from algorithms.transient import scan_line_neighbours, stream_scan_lines
+
+    use, persistent = columns["in_stage"], columns["persistent"]
+    before, after = out["before"], out["after"]
+    streamed = stream_scan_lines(columns["gps_time"], columns["point_source_id"], use,
+                                 before, after, STREAM_POINTS)
+    if not streamed:
+        rows = np.flatnonzero(use)
+        before[:], after[:] = -1, -1
+        found = scan_line_neighbours(np.asarray(columns["gps_time"][rows]),
+                                     np.asarray(columns["point_source_id"][rows]))
+        for side, j in zip((before, after), found, strict=True):
+            side[rows] = np.where(j >= 0, rows[np.maximum(j, 0)], -1)
+        del rows, found
+    for s in range(0, len(out), STREAM_POINTS):
+        part = out[s:s + STREAM_POINTS]
+        part["persistent"] = persistent[s:s + STREAM_POINTS]
+        for name in ("before", "after"):
+            j = part[name]
+            part[f"{name}_persistent"] = (j >= 0) & persistent[np.maximum(j, 0)]
+    return {"scan_lines": "in file order (time order per scanner)" if streamed else
+            "sorted by scanner and time over the whole file",
+            "scan_line_points": int(np.count_nonzero(use))}
 
 
 def _free_space(
@@ -120,9 +205,11 @@ DETECTOR = Detector(
              "again (moving objects)."),
     flag_bit=128,
     needs=("gps_time",),
-    # whether a floating cluster's place was seen again depends on the returns its scanner
-    # fired just before and after it, which may lie anywhere: not run in tiles
-    whole_cloud=("a cluster is compared with the returns its scanner fired just before and "
-                 "after it (its scan-line neighbours), which may lie anywhere in the cloud"),
+    # with persistence and the scan-line neighbours from the whole file (the pre-pass), a
+    # cluster no wider than max_extent lies within max_extent of any of its points, and what it
+    # touches within radius more (algorithms.transient's docstring has the proof)
+    halo=lambda params: params.max_extent + params.radius,
+    prepass=Prepass(halo=lambda params: params.radius, values=persistent_values,
+                    dtype=KNOWN_DTYPE, combine=combine_scan_lines),
     uses_trajectory=True,
 )

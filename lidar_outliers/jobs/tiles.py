@@ -5,9 +5,12 @@ in tiles, :mod:`lidar_outliers.tiling`) cuts its input into tile files and puts 
 manifest, into the job's storage (``jobs/<id>/tiles/``), then hands the tiles to the queue
 (:func:`split_job`). Any worker runs a tile (:func:`run_job_tile`): it fetches the manifest and
 the cells within the tile's halo, runs the pipeline and puts the tile's result back under a
-name of its own, so a re-run overwrites it. Once every tile is done one worker merges the
-results in the input's point order, writes the result and the statistics and ends the job
-(:func:`merge_job`); a tile that fails ends the job as failed with its message
+name of its own, so a re-run overwrites it. A stage that estimates a parameter from the whole
+cloud, or reads facts of the whole file (``transient``'s scan-line neighbours), first has a
+round of tiles give their values and one task fix the estimate or combine the facts and put
+each cell's part beside the cell (:func:`pin_job_stage`). Once every tile is done one worker
+merges the results in the input's point order, writes the result and the statistics and ends
+the job (:func:`merge_job`); a tile that fails ends the job as failed with its message
 (:func:`fail_tiled_job`) and nothing of the result is left. The Celery side (a chord of tile
 tasks and a merge task) is in ``worker/tasks.py``.
 
@@ -56,10 +59,12 @@ from lidar_outliers.tiling import (
     dropped_points,
     load_result,
     merge,
+    next_whole_file_step,
     noise_truth,
     partition,
-    pending_estimate,
+    pending_prepass,
     pin_stage,
+    prepare_stage,
     result_name,
     run_tile,
     save_result,
@@ -166,10 +171,10 @@ def _manifest(storage: Storage, job_id: str, folder: Path) -> tuple[TileSet, dic
     tiles = TileSet.from_json(folder, doc)
 
     def fetch(cell: Cell, path: Path) -> None:
-        try:
-            storage.get_file(layout.tile_key(job_id, cell_name(cell)), path)
+        try:  # the cell's points, or a detector's facts for them (named by cell too)
+            storage.get_file(layout.tile_key(job_id, path.name), path)
         except ObjectMissing:
-            raise TileError(f"tile file {cell_name(cell)} is missing") from None
+            raise TileError(f"tile file {path.name} is missing") from None
 
     tiles.fetch = fetch
     return tiles, doc
@@ -188,10 +193,12 @@ def values_name(stage: int, cell: Cell) -> str:
 
 
 def pending_phase(storage: Storage, job_id: str) -> tuple[int | None, bool]:
-    """The stage whose estimate the job's tiles must gather first (None: the tiles run), and
-    whether a round of estimates came before."""
+    """The stage whose estimate or facts from the whole file the job's tiles must gather
+    first (None: the tiles run), and whether such a round came before."""
     doc = json.loads(storage.read_bytes(layout.tile_key(job_id, MANIFEST)))
-    return pending_estimate(_stages(PipelineParams(), doc)[1]), bool(doc.get("estimated"))
+    tiles = TileSet.from_json(Path("."), doc)
+    return (next_whole_file_step(_stages(PipelineParams(), doc)[1], tiles.prepared),
+            bool(doc.get("estimated")))
 
 
 def job_cells(storage: Storage, job_id: str) -> list[Cell]:
@@ -201,8 +208,9 @@ def job_cells(storage: Storage, job_id: str) -> list[Cell]:
 
 def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: str,
                   stage: int) -> bool:
-    """Fix stage ``stage``'s estimate from every tile's values and record it in the manifest;
-    False when the job is no longer running or the stage is fixed already (a re-run)."""
+    """Fix stage ``stage``'s estimate from every tile's values, or combine its facts from the
+    whole file and put each cell's part into the storage, and record it in the manifest;
+    False when the job is no longer running or the stage is done already (a re-run)."""
     job = store.get_job(job_id)
     if job is None or job.status is not JobStatus.running:
         return False
@@ -210,7 +218,7 @@ def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: st
     try:
         tiles, doc = _manifest(storage, job_id, scratch / "cells")
         params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
-        if pending_estimate(stages) != stage:
+        if next_whole_file_step(stages, tiles.prepared) != stage:
             return False
 
         def values() -> Any:
@@ -223,9 +231,16 @@ def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: st
                 yield load_result(path)
                 path.unlink()
 
-        pinned, info = pin_stage(tiles, stages[stage], values(), scratch / "values")
-        doc["stages"][stage] = pinned.model_dump(mode="json")
-        doc["estimated"][str(stage)] = info
+        if pending_prepass(stages, tiles.prepared) == stage:
+            info = prepare_stage(
+                tiles, stages[stage], values(), scratch / "known",
+                put=lambda path: storage.put_file(layout.tile_key(job_id, path.name), path,
+                                                  move=True))
+            doc["prepared"] = list(tiles.prepared)
+        else:
+            pinned, info = pin_stage(tiles, stages[stage], values(), scratch / "values")
+            doc["stages"][stage] = pinned.model_dump(mode="json")
+        doc["estimated"][str(stage)] = {**doc["estimated"].get(str(stage), {}), **info}
         path = scratch / MANIFEST
         path.write_text(json.dumps(doc))
         storage.put_file(layout.tile_key(job_id, MANIFEST), path, move=True)
@@ -239,7 +254,8 @@ def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: st
 def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str,
                  cell: Cell, values_of: int | None = None) -> bool:
     """Run one tile of a running job and put its result (replacing an earlier run's); with
-    ``values_of``, the values that stage estimates a parameter from instead.
+    ``values_of``, the values that stage estimates a parameter from, or gathers its facts from
+    the whole file from, instead.
 
     Returns False when the job is no longer running (dismissed, or failed by another tile).
     Raises what the tile raised; the caller fails the job with it.
@@ -257,9 +273,11 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
         lead = len(doc.get("streamed") or [])
         dropped = None if not lead else np.asarray(
             _streamed_array(storage, job_id, "dropped.npy", scratch / "streamed"))
+        prepass = values_of is not None and pending_prepass(stages, tiles.prepared) == values_of
+        own = None if values_of is None else values_of - lead  # among the tiled stages
         result = run_tile(tiles, tuple(cell), params, stages[lead:],
-                          values_of=None if values_of is None else values_of - lead,
-                          dropped=dropped)
+                          values_of=None if prepass else own,
+                          prepass_of=own if prepass else None, dropped=dropped)
         path = scratch / (result_name(tuple(cell)) if values_of is None
                           else values_name(values_of, tuple(cell)))
         save_result(path, result)

@@ -8,10 +8,14 @@ import pytest
 from algorithms.errors import ParameterError
 from algorithms.transient import (
     detect_transient,
+    detect_transient_given,
     floating_clusters,
     neighbour_table,
     persistent_points,
     scan_line_neighbours,
+    scan_line_sides,
+    stream_scan_lines,
+    touching_persistent,
 )
 
 
@@ -91,8 +95,10 @@ def test_steps_match_slow_loops(seed):
     k, radius, min_dt = 12, 0.25, 0.5
     idx, near = neighbour_table(xyz, k, radius)
     persistent = persistent_points(t, idx, near, min_dt)
-    floating, fast = floating_clusters(xyz, persistent, idx, near, radius,
-                                       scan_line_neighbours(t, source))
+    clusters = floating_clusters(xyz, persistent, touching_persistent(idx, near, persistent),
+                                 radius, scan_line_sides(scan_line_neighbours(t, source),
+                                                         persistent))
+    floating, fast = clusters.floating, clusters.flagged
     slow_p, slow_fl, slow_f = slow_floating(xyz, t, radius, min_dt, k, source)
     np.testing.assert_array_equal(persistent, slow_p)
     np.testing.assert_array_equal(floating, slow_fl)
@@ -116,6 +122,26 @@ def test_scan_line_neighbours():
     assert before.tolist() == [2, -1, 1, 4, -1] and after.tolist() == [-1, 2, 0, -1, 3]
 
 
+def test_scan_lines_stream_over_a_file_in_time_order_per_scanner():
+    """Two scanners' returns interleaved, each in time order (ties too), some points left out:
+    the pass in chunks gives the sort's neighbours; a return out of order stops it."""
+    rng = np.random.default_rng(6)
+    n = 1000
+    source = rng.integers(1, 3, n)
+    t = np.round(np.cumsum(rng.uniform(0, 1e-3, n)), 4) + 100 * source  # per scanner in order
+    use = rng.random(n) < 0.8
+    before, after = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    assert stream_scan_lines(t, source, use, before, after, chunk=97)
+    rows = np.flatnonzero(use)
+    for got, want in zip((before, after), scan_line_neighbours(t[rows], source[rows]),
+                         strict=True):
+        assert np.all(got[~use] == -1)
+        np.testing.assert_array_equal(got[rows], np.where(want >= 0, rows[want], -1))
+    t[700], t[701] = t[701] + 1.0, t[700]  # one return later than the next of its scanner
+    source[700:702] = 1
+    assert not stream_scan_lines(t, source, np.ones(n, bool), before, after, chunk=97)
+
+
 def test_surface_seen_once_on_a_single_pass_is_not_flagged():
     """One scanner, one pass: every static surface is seen once, so nothing is persistent
     and being seen once says nothing about motion."""
@@ -126,6 +152,27 @@ def test_surface_seen_once_on_a_single_pass_is_not_flagged():
     t = 4e5 + np.arange(len(x)) * 1e-4
     res = detect_transient(np.column_stack([x, y, z]), t, np.ones(len(x), int))
     assert not res.flagged.any() and res.info["floating_not_revisited"] > 0
+
+
+def test_neighbours_equally_far_are_taken_in_index_order_in_any_part():
+    """On a lattice many points lie as far as the k-th: the table of a block of the lattice with
+    the points within radius around it is the whole lattice's (and takes the lowest indices)."""
+    g = np.arange(12) * 0.125  # exact in binary: the ties are exact
+    xyz = np.stack(np.meshgrid(g, g, g[:4], indexing="ij"), axis=-1).reshape(-1, 3)
+    k, radius = 4, 0.2
+    idx, near = neighbour_table(xyz, k, radius)
+    xy = xyz[:, :2]
+    for lo in (0.0, 0.5):
+        block = np.flatnonzero(np.all((xy >= lo - radius) & (xy <= lo + 0.5 + radius), axis=1))
+        core = np.flatnonzero(np.all((xy[block] >= lo) & (xy[block] <= lo + 0.5), axis=1))
+        part_idx, part_near = neighbour_table(xyz[block], k, radius, rows=core)
+        whole = block[core]
+        np.testing.assert_array_equal(np.sort(block[part_idx], axis=1), np.sort(idx[whole], axis=1))
+        np.testing.assert_array_equal(part_near.sum(axis=1), near[whole].sum(axis=1))
+    dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
+    np.fill_diagonal(dist, np.inf)
+    first = np.lexsort((np.arange(len(xyz)), dist[0]))[:k]  # by distance, then index
+    assert sorted(idx[0]) == sorted(first)
 
 
 def test_coincident_points_exclude_only_themselves():
@@ -167,3 +214,55 @@ def test_tiny_clouds():
     assert detect_transient(np.zeros((0, 3)), np.zeros(0)).score.shape == (0,)
     res = detect_transient(np.zeros((2, 3)), np.array([0.0, 10.0]))
     assert res.score.tolist() == [0.0, 0.0]
+
+
+def test_cluster_wider_than_max_extent_is_static():
+    """The arm is 1.5 m long: flagged while max_extent allows it, static scene once wider."""
+    rng = np.random.default_rng(2)
+    xyz, t, arm = street(rng)
+    narrow = detect_transient(xyz, t, radius=0.25, max_extent=1.0)
+    wide = detect_transient(xyz, t, radius=0.25, max_extent=2.0)
+    assert wide.flagged[arm].all() and wide.info["single_epoch_wide"] == 0
+    assert not narrow.flagged.any()
+    assert narrow.info["single_epoch_wide"] >= len(arm)
+    np.testing.assert_array_equal(narrow.score[arm], 1.0)
+
+
+def _given(xyz, t, source, rows, k, radius, min_dt):
+    """The whole cloud's persistence and scan-line neighbours, read for the points ``rows``."""
+    idx, near = neighbour_table(xyz, k, radius)
+    persistent = persistent_points(t, idx, near, min_dt)
+    where = np.full(len(xyz), -1)
+    where[rows] = np.arange(len(rows))
+    sides = []
+    for side in scan_line_sides(scan_line_neighbours(t, source), persistent):
+        j = side.row[rows]
+        sides.append(type(side)(side.present[rows], np.where(j >= 0, where[j], -1),
+                                side.persistent[rows]))
+    return persistent[rows], tuple(sides)
+
+
+@pytest.mark.parametrize("x0", [0.0, 1.3, 2.6])
+def test_points_within_max_extent_and_radius_decide_as_the_whole_cloud(x0):
+    """A core strip 0.8 m wide with the points within max_extent + radius around it: its
+    points' flags and scores are the whole cloud's, though the arm, the rail and the ground's
+    single-epoch patches cross the strip's edge and the scan-line neighbours lie elsewhere."""
+    rng = np.random.default_rng(4)
+    xyz, t, _ = street(rng)
+    top, t_top = hidden_box(rng)
+    s = rng.uniform(0.2, 3.8, 300)  # a rail 3.6 m long over the street, seen once: wide
+    rail = np.column_stack([s, np.full(300, 3.5), np.full(300, 1.2)])
+    t_rail = 4e5 + rng.uniform(0.5, 0.95, 300)  # between the ground's returns
+    xyz, t = np.vstack([xyz, top, rail]), np.concatenate([t, t_top, t_rail])
+    source = rng.integers(1, 3, len(t))
+    k, radius, min_dt, max_extent = 12, 0.25, 0.5, 1.6
+    whole = detect_transient(xyz, t, source, k=k, radius=radius, min_dt=min_dt,
+                             max_extent=max_extent, centre=False)
+    assert whole.flagged.any() and whole.info["single_epoch_wide"] > 0
+    halo = max_extent + radius
+    rows = np.flatnonzero((xyz[:, 0] >= x0 - halo) & (xyz[:, 0] <= x0 + 0.8 + halo))
+    core = (xyz[rows, 0] >= x0) & (xyz[rows, 0] <= x0 + 0.8)
+    persistent, sides = _given(xyz, t, source, rows, k, radius, min_dt)
+    part = detect_transient_given(xyz[rows], persistent, sides, k=k, radius=radius,
+                                  max_extent=max_extent)
+    np.testing.assert_array_equal(part.score[core], whole.score[rows][core])

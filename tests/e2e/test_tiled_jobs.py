@@ -20,7 +20,7 @@ import pytest
 from lidar_outliers.jobs.store import Store
 from lidar_outliers.process import process_file
 from tests.e2e.stack import RedisServer, Stack, alive, running_stack, wait_for, wait_job
-from tests.lasfiles import scanned_tile_scene, tile_scene
+from tests.lasfiles import STREET_TRANSIENT, scanned_tile_scene, street_scene, tile_scene
 
 SENSOR = [600_012.0, 5_000_012.0, 52.0]
 PIPELINE = {"pipeline": [{"detector": "dror", "origin": SENSOR, "multiplier": 8.0},
@@ -145,14 +145,28 @@ def test_temporal_first_streams_then_tiles_give_the_one_machine_result(stack, ke
     assert not (stack.data_dir / "jobs" / job / "tiles").exists()
 
 
-def test_transient_job_runs_whole_on_one_worker(stack, key, scene):
-    """transient needs the whole cloud: a large job of it is not cut into tiles."""
-    job = submit(stack, key, scene, {"pipeline": [{"detector": "transient"}]})
+def test_transient_job_tiles_after_its_pass_over_the_whole_file(stack, key, tmp_path):
+    """transient's persistence and scan-line neighbours come from a round of tiles and one
+    combining task, then the tiles run: the one machine's result."""
+    street = street_scene(tmp_path / "street.las")
+    inputs = {"pipeline": [STREET_TRANSIENT]}
+    job = submit(stack, key, street, inputs)
     with stack.client(key) as client:
         done = wait_job(client, job, ("successful", "failed"), timeout=300)
         assert done["status"] == "successful", done["message"]
+        out = tmp_path / "service.las"
+        out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
         stats = client.get(f"/jobs/{job}/results/statistics").json()
-    assert stats["mode"] == "in memory" and "tiles" not in stats
+    assert stats["mode"] == "tiled over workers"
+    assert stats["stages"][0]["info"]["scan_lines"].startswith("in file order")
+    local = tmp_path / "local.las"
+    local_stats = process_file(street, local, inputs)
+    a, b = laspy.read(local), laspy.read(out)
+    assert (a.outlier_flags != 0).any()
+    assert np.array_equal(a.outlier_flags, b.outlier_flags)
+    x, y = np.asarray(a.transient_score), np.asarray(b.transient_score)
+    np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-5)
+    assert stats["overall"] == local_stats["overall"]
     assert not (stack.data_dir / "jobs" / job / "tiles").exists()
     assert requeues(stack, job) == 0
 

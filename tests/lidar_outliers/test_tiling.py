@@ -21,7 +21,7 @@ from lidar_outliers.tiling import (
     partition,
     run_tile,
 )
-from tests.lasfiles import scanned_tile_scene, tile_scene, write_las
+from tests.lasfiles import STREET_TRANSIENT, scanned_tile_scene, street_scene, tile_scene, write_las
 
 SENSOR = (600_012.0, 5_000_012.0, 52.0)
 TILE = 3.0  # metres: the box is 6 x 4 m, the sections 2 m, the patches about 1 m across
@@ -154,17 +154,66 @@ def moving(tmp_path_factory) -> Path:
                      offsets=(600_000, 5_000_000, 0), vlrs=())
 
 
-def test_transient_runs_whole_and_says_why(moving, tmp_path):
-    """A floating cluster is judged by the returns its scanner fired just before and after it,
-    which may lie anywhere in the cloud: transient does not run in tiles, and the pipeline's
-    result is the whole cloud's."""
+@pytest.fixture(scope="module")
+def street(tmp_path_factory) -> Path:
+    return street_scene(tmp_path_factory.mktemp("street") / "street.las")
+
+
+STREET_TILE = 1.5  # metres: the box is 4 m long, the canopy 15 m, the one-pass stretch 12 m
+
+
+@pytest.mark.parametrize("pipeline", [
+    [STREET_TRANSIENT],
+    [STREET_TRANSIENT, {"detector": "height_field", "sigma": 0.01, "low": False}],
+    [{"detector": "height_field", "low": False}, STREET_TRANSIENT],
+], ids=["transient", "transient, then height_field", "height_field sigma auto, then transient"])
+def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
+    """Persistence and the scan-line neighbours come from passes over the whole file, the
+    clusters from the tile and max_extent + radius around it: the whole cloud's result."""
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
-    pipeline = {"pipeline": [{"detector": "transient"},
-                             {"detector": "height_field", "low": False}]}
-    process_file(moving, whole, pipeline)
-    stats = process_file(moving, tiled, pipeline, tile_size=4.0)
-    assert stats["mode"] == "in memory" and "scan-line neighbours" in stats["tiling"]
-    _assert_same(_results(whole), _results(tiled), ["transient", "height_field"])
+    stats_whole = process_file(street, whole, {"pipeline": pipeline})
+    stats = process_file(street, tiled, {"pipeline": pipeline}, tile_size=STREET_TILE)
+    assert stats_whole["mode"] == "in memory" and stats["mode"] == "tiled"
+    assert stats["tiles"]["count"] >= 100
+    a, b = _results(whole), _results(tiled)
+    _assert_same(a, b, [s["detector"] for s in pipeline])
+    for sw, st in zip(stats_whole["stages"], stats["stages"], strict=True):
+        assert (sw["points_in"], sw["points_tested"], sw["points_flagged"]) == (
+            st["points_in"], st["points_tested"], st["points_flagged"])
+    assert stats["overall"] == stats_whole["overall"]
+    flagged = (np.asarray(a.outlier_flags) & 128) != 0
+    x, y, z = (np.asarray(a[d]) - o for d, o in (("x", 600_000), ("y", 5e6), ("z", 50)))
+    box = (x >= 20) & (x <= 24) & (y >= 3.4) & (y <= 5.1) & (z >= 0.9) & (z <= 2.6)
+    # the box flagged (by height_field first, at a few edge points), the canopy static
+    assert (np.asarray(a.outlier_flags) != 0)[box].all() and not flagged[~box].any()
+    transient = next(s for s in stats["stages"] if s["detector"] == "transient")
+    assert transient["info"]["scan_lines"].startswith("in file order")
+
+
+def test_transient_tiled_equals_whole_cloud_in_any_point_order(tmp_path):
+    """Records not in time order: the scan-line neighbours come from a sort over the file."""
+    street = street_scene(tmp_path / "shuffled.las", shuffled=True)
+    pipeline = {"pipeline": [STREET_TRANSIENT]}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    process_file(street, whole, pipeline)
+    stats = process_file(street, tiled, pipeline, tile_size=STREET_TILE)
+    assert stats["stages"][0]["info"]["scan_lines"].startswith("sorted")
+    a, b = _results(whole), _results(tiled)
+    assert ((np.asarray(a.outlier_flags) & 128) != 0).sum() > 300
+    _assert_same(a, b, ["transient"])
+
+
+def test_transient_tiled_flags_the_canopy_when_max_extent_allows_it(street, tmp_path):
+    """With max_extent above the canopy's 15 m the canopy floats and is flagged, whole and in
+    tiles of 5 m alike (the halo, max_extent + radius, then spans the street)."""
+    stage = {**STREET_TRANSIENT, "max_extent": 20.0}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    process_file(street, whole, {"pipeline": [stage]})
+    process_file(street, tiled, {"pipeline": [stage]}, tile_size=5.0)
+    a, b = _results(whole), _results(tiled)
+    _assert_same(a, b, ["transient"])
+    flagged = (np.asarray(a.outlier_flags) & 128) != 0
+    assert flagged[np.asarray(a.z) - 50 > 4].mean() > 0.9
 
 
 def test_transient_with_a_trajectory_runs_whole_and_says_why(moving, tmp_path):
@@ -181,8 +230,7 @@ def test_every_detector_declares_whether_it_tiles():
         halo = detector.halo(detector.parameters())
         assert halo is None or halo >= 0, name
     tiled = {name for name, d in DETECTORS.items() if d.halo(d.parameters()) is not None}
-    assert {"patch", "section", "dror", "snow"} <= tiled
-    assert "transient" not in tiled
+    assert {"patch", "section", "dror", "snow", "transient"} <= tiled
     streamed = {name for name, d in DETECTORS.items() if d.streams}
     assert streamed == {"temporal"} and not streamed & tiled
 
