@@ -41,6 +41,11 @@ BATCH_NEIGHBOURS = BATCH_POINTS * 40
 FIT_MAX_ITER = 500
 FIT_TOL = 1e-8
 
+#: Coordinates up to this many metres are taken as local and used as they are.
+LOCAL_EXTENT = 1e5
+#: Larger coordinates are shifted by a multiple of this many metres.
+SHIFT_GRID = 65536.0
+
 #: Why a point is untested, by fit status (:mod:`algorithms.quadric`), as named in the statistics.
 UNTESTED_REASONS = {
     NOT_CONVERGED: "did_not_converge",
@@ -102,6 +107,45 @@ def distinct_locations(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order[new], location
 
 
+def frame_shift(xyz: np.ndarray) -> np.ndarray:
+    """(3,) what to subtract from the coordinates before any arithmetic: nothing for
+    coordinates already local (below ``LOCAL_EXTENT`` metres: the cloud types of this project),
+    else the minimum corner floored to a multiple of ``SHIFT_GRID`` metres. A tile of a cloud
+    and the whole cloud then subtract the same numbers, so their patches hold the same bits
+    and give the same scores (a shift to each one's own minimum corner would round
+    differently)."""
+    if not xyz.size or float(np.abs(xyz).max()) <= LOCAL_EXTENT:
+        return np.zeros(3)
+    return np.floor(xyz.min(axis=0) / SHIFT_GRID) * SHIFT_GRID
+
+
+def nearest_in_order(tree: cKDTree, xyz: np.ndarray, query: np.ndarray, k: int) -> np.ndarray:
+    """(m, k) the k nearest points of ``xyz[query]``, each row the query's own point first and
+    the others by index; points tied at the k-th distance are taken by index.
+
+    So the patch of a point depends on the points alone, not on the k-d tree's build (a tile
+    and the whole cloud index the same points in the same order), and its sums run in one
+    order.
+    """
+    kk = min(k + 1, len(xyz))
+    dist, nbr = tree.query(xyz[query], k=kk, workers=-1)
+    dist, nbr = dist.reshape(len(query), kk), nbr.reshape(len(query), kk)
+    if kk > k:
+        for row in np.flatnonzero(dist[:, k - 1] == dist[:, k]):
+            nbr[row, :k] = _ties_by_index(tree, xyz, query[row], dist[row, k - 1], k)
+    nbr = nbr[:, :k]
+    rest = np.sort(nbr[:, 1:], axis=1)
+    return np.ascontiguousarray(np.column_stack([nbr[:, 0], rest]))
+
+
+def _ties_by_index(tree: cKDTree, xyz: np.ndarray, i: int, radius: float, k: int
+                   ) -> np.ndarray:
+    """The k nearest of point i, nearest first, equal distances by index."""
+    near = np.asarray(tree.query_ball_point(xyz[i], radius * (1 + 1e-9)), dtype=np.int64)
+    d2 = np.sum((xyz[near] - xyz[i]) ** 2, axis=1)
+    return near[np.lexsort((near, d2))][:k]
+
+
 def detect_patch(
     xyz: np.ndarray,
     *,
@@ -160,7 +204,7 @@ def detect_patch(
         info["note"] = f"fewer points ({n}) than k={k}: nothing tested"
         return DetectorResult(score, np.zeros(n, dtype=bool), crit, info)
 
-    local = pts - pts.min(axis=0)  # exact enough before the per-patch centring
+    local = pts - frame_shift(pts)  # the same numbers for any subset of the same cloud
     tree = cKDTree(local)
     first, location = distinct_locations(local)
     copies = np.bincount(location)  # points at each distinct location
@@ -169,7 +213,7 @@ def detect_patch(
     iterations_sum = 0
     batch_points = max(1, min(int(batch_points), BATCH_NEIGHBOURS // k))
     for batch in spatial_batches(local[first, :2], batch_points, tile_size):
-        _, nbr = tree.query(local[first[batch]], k=k, workers=-1)
+        nbr = nearest_in_order(tree, local, first[batch], k)
         fit = fit_quadrics(
             local, var_sigma, neighbours=nbr, max_iter=FIT_MAX_ITER, tol=FIT_TOL,
             t_first_only=True,
