@@ -49,7 +49,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -167,10 +167,27 @@ def envelope_scores(
     tree = cKDTree(xyz[surf, :2])
     for start in range(0, cand.size, _BATCH):
         ci = cand[start:start + _BATCH]
-        _, j = tree.query(xyz[ci, :2], k=k)
+        _, j = nearest_first(tree, xyz[ci, :2], k)
         r, res_nb = _plane_residuals(xyz[surf[j.reshape(len(ci), k)]], xyz[ci])
         score[ci] = np.maximum((res_nb.min(axis=1) - r) / below, (r - res_nb.max(axis=1)) / above)
     return score
+
+
+#: Neighbours past the k-th looked at to break ties in distance by position.
+TIE_SLACK = 8
+
+
+def nearest_first(tree: Any, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(m, k) distances and indices of each query's k nearest points of a cKDTree, equal
+    distances in the order of the tree's points (the first in the cloud first): a tile, whose
+    points are the cloud's in the same order, then picks the same neighbours as the whole
+    cloud where several lie at the k-th distance (a millimetre grid makes that common).
+    Ties reaching past ``TIE_SLACK`` further neighbours keep the tree's order."""
+    kk = min(k + TIE_SLACK, tree.n)
+    dist, idx = tree.query(queries, k=kk)
+    dist, idx = dist.reshape(len(queries), kk), idx.reshape(len(queries), kk)
+    order = np.lexsort((idx, dist), axis=-1)[:, :k]
+    return np.take_along_axis(dist, order, axis=1), np.take_along_axis(idx, order, axis=1)
 
 
 def _plane_residuals(
@@ -480,8 +497,7 @@ def floor_scores(
     tree = cKDTree(xyz[reference, :2])
     for start in range(0, cand.size, _BATCH):
         ci = cand[start:start + _BATCH]
-        dist, j = tree.query(xyz[ci, :2], k=k)
-        dist, j = dist.reshape(len(ci), k), j.reshape(len(ci), k)
+        dist, j = nearest_first(tree, xyz[ci, :2], k)
         r, res, grad = _plane_residuals(xyz[reference[j]], xyz[ci], lower_refit=True,
                                         slope=True)
         floor = np.quantile(res, quantile, axis=1)

@@ -59,7 +59,8 @@ Run = Callable[[Cloud, Any], DetectorResult | GroundResult]
 Halo = Callable[[Any], "float | None"]
 #: (n,) metres of the neighbourhood each point of ``cloud`` actually used (k-th neighbour,
 #: search radius), for the points of the (n,) bool mask (others: anything): for detectors
-#: whose reach depends on the data, checked against the halo.
+#: whose reach depends on the data, checked against the halo; inf: more points than the cloud
+#: at hand holds (the halo grows until they are there).
 Reach = Callable[[Cloud, Any, np.ndarray], np.ndarray]
 
 
@@ -89,7 +90,7 @@ def no_halo(_params: Any) -> None:
 def knn_reach(xyz: np.ndarray, k: int, where: np.ndarray) -> np.ndarray:
     """(n,) distance from each point of the mask ``where`` to its k-th nearest point (itself
     counted first; 0 outside the mask); inf where the cloud has fewer than k points (every
-    point then needs the whole cloud)."""
+    point then needs more points than these: a tile's halo grows until it holds k)."""
     from scipy.spatial import cKDTree
 
     n = len(xyz)
