@@ -791,7 +791,7 @@ def _result_reach(local: np.ndarray, params: DetachedParameters,
             out[cand] = np.inf  # a larger cloud may hold more surface points
         else:
             dist, _ = cKDTree(local[surf, :2]).query(local[cand, :2], k=[p.k_surface])
-            out[cand] = np.maximum(out[cand], _reach_through(local, cand, dist[:, 0], out))
+            out[cand] = np.maximum(out[cand], reach_through(local, cand, dist[:, 0], out))
     voxel = voxel_size(local, p.piece_points, float(p.spacing_xy), p.voxel)
     if voxel is not None:
         around = piece_reach(local, voxel, p.piece_points)
@@ -805,14 +805,14 @@ def _result_reach(local: np.ndarray, params: DetachedParameters,
             else:
                 dist, _ = cKDTree(local[reference, :2]).query(local[small, :2], k=[p.k_floor])
                 cells = dist[:, 0] + 3 * voxel  # a cell 2 voxels wide: diagonal 2 sqrt(2)
-                out[small] = np.maximum(out[small], _reach_through(local, small, cells, around))
+                out[small] = np.maximum(out[small], reach_through(local, small, cells, around))
     radius = pit_radius_used(p.pit_radius, float(p.spacing_xy))
     if radius > 0:
         out = np.maximum(out, 4 * np.sqrt(2.0) * radius / 3 * 1.001)
     return out
 
 
-def _reach_through(local: np.ndarray, points: np.ndarray, radius: np.ndarray,
+def reach_through(local: np.ndarray, points: np.ndarray, radius: np.ndarray,
                    reach: np.ndarray) -> np.ndarray:
     """(m,) for each of ``points``, the largest of ``radius`` and |q - p| + reach(q) over the
     points q within ``radius`` (XY) whose own reach is not 0: what depending on everything

@@ -570,7 +570,8 @@ def process_tiled(
         while (i := pending_estimate(stages)) is not None:
             values = (run_tile(tiles, cell, params, stages, trajectory, values_of=i)
                       for cell in sorted(tiles.cells))
-            pinned, estimated[i] = pin_stage(tiles, stages[i], values, work / "values")
+            pinned, info = pin_stage(tiles, stages[i], values, work / "values")
+            estimated[i] = {**estimated.get(i, {}), **info}  # a stage may pin in rounds
             stages = [*stages[:i], pinned, *stages[i + 1:]]
         results = []
         for k, cell in enumerate(sorted(tiles.cells)):

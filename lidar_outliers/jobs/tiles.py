@@ -168,7 +168,7 @@ def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: st
 
         pinned, info = pin_stage(tiles, stages[stage], values(), scratch / "values")
         doc["stages"][stage] = pinned.model_dump(mode="json")
-        doc["estimated"][str(stage)] = info
+        doc["estimated"][str(stage)] = {**doc["estimated"].get(str(stage), {}), **info}
         path = scratch / MANIFEST
         path.write_text(json.dumps(doc))
         storage.put_file(layout.tile_key(job_id, MANIFEST), path, move=True)

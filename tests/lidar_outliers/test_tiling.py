@@ -40,6 +40,7 @@ PIPELINES = {
     "dror, then section": [
         {"detector": "dror", "origin": SENSOR, "multiplier": 8.0},
         {"detector": "section", "section_size": 2.0}],
+    "height_field, low": [{"detector": "height_field", "low": True}],
     "detached": [{"detector": "detached"}],
     "detached, scaled, then patch": [
         {"detector": "detached", "piece_points": 200, "k_floor": 16, "k_surface": 32},
@@ -84,6 +85,9 @@ def test_tiled_run_equals_whole_cloud(scene, tmp_path, name):
     assert stats["overall"] == stats_whole["overall"]
     assert not list(tmp_path.glob(".tiles-*"))  # the tile files are gone
     for sw, st in zip(stats_whole["stages"], stats["stages"], strict=True):
+        if "low_test" in sw["info"]:  # the pieces under the floor are found tile by tile too
+            assert sw["info"]["low_test"]["points_flagged"] > 0
+            assert st["info"]["low_test"]["voxel"] == sw["info"]["low_test"]["voxel"]
         if "sigma_source" in sw["info"]:  # estimated from the whole cloud either way
             assert st["info"]["sigma_source"] == sw["info"]["sigma_source"]
             assert st["info"]["sigma"] == pytest.approx(sw["info"]["sigma"], rel=1e-9)
@@ -167,7 +171,7 @@ def test_every_detector_declares_whether_it_tiles():
         halo = detector.halo(detector.parameters())
         assert halo is None or halo >= 0, name
     tiled = {name for name, d in DETECTORS.items() if d.halo(d.parameters()) is not None}
-    assert {"patch", "section", "dror", "snow", "detached"} <= tiled
+    assert {"patch", "section", "dror", "snow", "detached", "height_field"} <= tiled
     assert "transient" not in tiled
 
 
