@@ -425,10 +425,26 @@ def small_ladder(xyz: np.ndarray, piece_points: int, start: float = 0.0,
     """(n,) float: bit i set where the point lies in a small piece at ``voxel_ladder(start)[i]``
     (at most 18 bits: exact in a float). Summed over a cloud's points, the counts
     :func:`surface_scale` chooses from (:func:`scale_of_ladder`)."""
-    bits = np.zeros(len(xyz), dtype=np.int64)
+    local = xyz - (xyz.min(axis=0) if origin is None else origin) if len(xyz) else xyz
+    return ladder_pieces(local, piece_points, start)[0]
+
+
+def ladder_pieces(local: np.ndarray, piece_points: int,
+                  start: float) -> tuple[np.ndarray, np.ndarray]:
+    """(bits, reach), each (n,): :func:`small_ladder`'s bits of ``local`` (grids at 0) and the
+    largest :func:`piece_reach` over the ladder, from one cut per size."""
+    bits = np.zeros(len(local), dtype=np.int64)
+    reach = np.zeros(len(local))
+    if len(local) == 0:
+        return bits.astype(np.float64), reach
     for i, size in enumerate(voxel_ladder(start)):
-        bits |= small_pieces(xyz, size, piece_points, origin).astype(np.int64) << i
-    return bits.astype(np.float64)
+        label = voxel_pieces(local, size, np.zeros(3))
+        small = np.bincount(label)[label] < piece_points
+        bits |= small.astype(np.int64) << i
+        if small.any():
+            around = label_extent(local[small, :2], label[small]) + 3 * size
+            reach[small] = np.maximum(reach[small], around)
+    return bits.astype(np.float64), reach
 
 
 def scale_of_ladder(parts: Iterable[np.ndarray], piece_points: int, start: float) -> float:
@@ -703,7 +719,7 @@ def estimate_values(xyz: np.ndarray, params: DetachedParameters,
     if name == "spacing_xy":
         return xy_kth_distance(local)
     if name == "voxel":
-        return small_ladder(local, params.piece_points, float(params.spacing_xy), np.zeros(3))
+        return ladder_pieces(local, params.piece_points, float(params.spacing_xy))[0]
     raise ValueError("every estimate of these parameters is given")
 
 
@@ -743,8 +759,7 @@ def tile_reach(xyz: np.ndarray, params: DetachedParameters, where: np.ndarray,
     elif name == "spacing_xy":
         out[where] = xy_kth_distance(local)[where]
     elif name == "voxel":
-        for size in voxel_ladder(float(params.spacing_xy)):
-            out = np.maximum(out, piece_reach(local, size, params.piece_points))
+        out = ladder_pieces(local, params.piece_points, float(params.spacing_xy))[1]
     else:
         out = _result_reach(local, params, where)
     return np.where(where, out, 0.0)

@@ -331,7 +331,7 @@ def estimate_values(xyz: np.ndarray, params: HeightFieldParameters,
     (:func:`full_residuals`), its XY distance to its 8th neighbour
     (:func:`algorithms.detached.xy_kth_distance`) or its small-piece bits
     (:func:`algorithms.detached.small_ladder`)."""
-    from algorithms.detached import relative, small_ladder, xy_kth_distance
+    from algorithms.detached import ladder_pieces, relative, xy_kth_distance
 
     name = pending_estimate(params)
     if name == "sigma":
@@ -340,7 +340,7 @@ def estimate_values(xyz: np.ndarray, params: HeightFieldParameters,
     if name == "spacing_xy":
         return xy_kth_distance(local)
     if name == "voxel":
-        return small_ladder(local, LOW_PIECE_POINTS, float(params.spacing_xy), np.zeros(3))
+        return ladder_pieces(local, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
     raise ValueError("every estimate of these parameters is given")
 
 
@@ -369,10 +369,10 @@ def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray
     from scipy.spatial import cKDTree
 
     from algorithms.detached import (
+        ladder_pieces,
         piece_reach,
         reach_through,
         relative,
-        voxel_ladder,
         voxel_size,
         xy_kth_distance,
     )
@@ -387,9 +387,8 @@ def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray
     if name == "spacing_xy":
         return np.where(where, xy_kth_distance(local), 0.0)
     if name == "voxel":
-        for size in voxel_ladder(float(params.spacing_xy)):
-            out = np.maximum(out, piece_reach(local, size, LOW_PIECE_POINTS))
-        return np.where(where, out, 0.0)
+        reach = ladder_pieces(local, LOW_PIECE_POINTS, float(params.spacing_xy))[1]
+        return np.where(where, reach, 0.0)
     kk = params.k + 1  # the point itself and its k neighbours
     if n < kk:
         return np.where(where, np.inf, 0.0)

@@ -11,6 +11,7 @@ whose clusters, pieces or floors cross its halo runs again with a wider one.
 
 from __future__ import annotations
 
+import hashlib
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,34 @@ def grid_origin(cloud: Cloud) -> np.ndarray | None:
     return None if cloud.anchor is None else np.r_[cloud.anchor, 0.0]
 
 
+class LadderMemo:
+    """The small-piece ladder (:func:`algorithms.detached.ladder_pieces`: bits and reach) of
+    the last cloud asked for. A tile's reach check and then its values of the voxel estimate
+    cut the same points at every voxel size; with the memo they are cut once."""
+
+    def __init__(self) -> None:
+        self.key: tuple[Any, ...] | None = None
+        self.value: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __call__(self, cloud: Cloud, piece_points: int,
+                 start: float) -> tuple[np.ndarray, np.ndarray]:
+        from algorithms.detached import ladder_pieces, relative
+
+        xyz = np.ascontiguousarray(cloud.xyz)
+        origin = grid_origin(cloud)
+        key = (hashlib.blake2b(xyz.view(np.uint8), digest_size=16).digest(), xyz.shape,
+               None if origin is None else origin.tobytes(), piece_points, start)
+        if key != self.key or self.value is None:
+            self.key, self.value = None, None  # a failed cut leaves no stale entry
+            self.value = ladder_pieces(relative(xyz, origin), piece_points, start)
+            self.key = key
+        return self.value
+
+
+#: One per process: the reach check and the values of a tile run one after the other.
+LADDER = LadderMemo()
+
+
 def run(cloud: Cloud, params: DetachedParameters) -> DetectorResult:
     from algorithms.detached import detect_detached
 
@@ -34,14 +63,19 @@ def run(cloud: Cloud, params: DetachedParameters) -> DetectorResult:
 
 
 def reach(cloud: Cloud, params: DetachedParameters, where: np.ndarray) -> np.ndarray:
-    from algorithms.detached import tile_reach
+    from algorithms.detached import pending_estimate, tile_reach
 
+    if pending_estimate(params) == "voxel":
+        return np.where(where, LADDER(cloud, params.piece_points, float(params.spacing_xy))[1],
+                        0.0)
     return tile_reach(cloud.xyz, params, where, grid_origin(cloud))
 
 
 def values(cloud: Cloud, params: DetachedParameters) -> np.ndarray:
-    from algorithms.detached import estimate_values
+    from algorithms.detached import estimate_values, pending_estimate
 
+    if pending_estimate(params) == "voxel":
+        return LADDER(cloud, params.piece_points, float(params.spacing_xy))[0]
     return estimate_values(cloud.xyz, params, grid_origin(cloud))
 
 

@@ -18,7 +18,7 @@ from algorithms.height_field import HeightFieldParameters
 from algorithms.result import DetectorResult
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors.base import Detector, Estimate
-from lidar_outliers.detectors.detached import grid_origin
+from lidar_outliers.detectors.detached import LADDER, grid_origin
 
 
 def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
@@ -28,14 +28,19 @@ def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
 
 
 def reach(cloud: Cloud, params: HeightFieldParameters, where: np.ndarray) -> np.ndarray:
-    from algorithms.height_field import tile_reach
+    from algorithms.height_field import LOW_PIECE_POINTS, pending_estimate, tile_reach
 
+    if pending_estimate(params) == "voxel":
+        return np.where(where, LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[1],
+                        0.0)
     return tile_reach(cloud.xyz, params, where, grid_origin(cloud))
 
 
 def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
-    from algorithms.height_field import estimate_values
+    from algorithms.height_field import LOW_PIECE_POINTS, estimate_values, pending_estimate
 
+    if pending_estimate(params) == "voxel":
+        return LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
     return estimate_values(cloud.xyz, params, grid_origin(cloud))
 
 
