@@ -40,6 +40,16 @@ lowest surface around it. Tuned on the Zurich (LAStools) and laspy append-bug ti
 ``shared/data/airborne``; the other five airborne tiles and the seven ISPRS samples were only
 used to check. Not in the paper (Leslar, Wang & Hu 2010); pure numpy/scipy.
 
+Tile by tile (the notes before :func:`pending_estimate`): the median spacing, the horizontal
+spacing and the voxel size are whole-cloud quantities, measured from values every point has from
+its neighbourhood alone (the spacings' subsample is every m-th point in file order, which a tiled
+run reproduces from the points' values gathered in file order); every grid (voxels, floor and pit
+cells) starts at a corner given by the caller, the file's lower-left corner in the pipeline,
+rather than at the points' own lowest corner, so a tile puts each point in the whole cloud's
+cells (this shifts the grids of a whole-cloud run by less than a cell: on the airborne tiles the
+pieces test flags a few returns more or fewer). Equal distances at the k-th neighbour are broken
+by position (:func:`nearest_first`), so a tile picks the whole cloud's neighbours.
+
 Chen, Z., Devereux, B., Gao, B., Amable, G. (2012). Upward-fusion urban DTM generating method
 using airborne lidar data. ISPRS J. Photogramm. Remote Sens. 72, 121-130 (extended local
 minimum).

@@ -74,7 +74,10 @@ class Estimate:
     parameters with the estimate fixed, and the statistics' info on it, from the values of all
     the points in file order (``parts``: consecutive pieces). A tiled run computes the values
     tile by tile, pins, then runs the tiles with the pinned parameters: the whole cloud's
-    result.
+    result. Several parameters are estimated one round each, in an order the detector keeps:
+    ``applies`` holds until the last is fixed, ``values`` and ``pin`` serve the first not yet
+    fixed (``detached``: its spacings, then its voxel size, which starts at one of them).
+    ``reach`` then answers for the values of that round.
     """
 
     applies: Callable[[Any], bool]
