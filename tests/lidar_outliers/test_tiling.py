@@ -121,6 +121,14 @@ def test_detached_tiles_find_clusters_pieces_and_pits(airborne, tmp_path):
     assert info["pieces"]["voxel"] == info_whole["pieces"]["voxel"]
     _assert_same(_results(whole), _results(tiled), ["detached"])
     assert stats["overall"] == stats_whole["overall"]
+    # with the estimates fixed, most tiles need a few tiles around them, not the cloud
+    pinned = {**DETACHED_SCALED, "spacing": info_whole["median_spacing"],
+              "spacing_xy": info_whole["xy_spacing"], "voxel": info_whole["pieces"]["voxel"]}
+    params = PipelineParams.model_validate({"pipeline": [pinned]})
+    tiles = partition(airborne, tmp_path / "cells", TILE)
+    halos = [float(run_tile(tiles, c, params, list(params.pipeline))["halo"])
+             for c in sorted(tiles.cells)]
+    assert np.median(halos) <= 2 * TILE
 
 
 @pytest.fixture(scope="module")
