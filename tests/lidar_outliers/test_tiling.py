@@ -45,6 +45,9 @@ PIPELINES = {
     "detached, scaled, then patch": [
         {"detector": "detached", "piece_points": 200, "k_floor": 16, "k_surface": 32},
         {"detector": "patch", "k": 30}],
+    "section, then detached, scaled": [  # estimated from the points section left
+        {"detector": "section", "section_size": 2.0},
+        {"detector": "detached", "piece_points": 200, "k_floor": 16, "k_surface": 32}],
 }
 
 
