@@ -187,14 +187,15 @@ def envelope_scores(
 TIE_SLACK = 8
 
 
-def nearest_first(tree: Any, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def nearest_first(tree: Any, queries: np.ndarray, k: int,
+                  workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """(m, k) distances and indices of each query's k nearest points of a cKDTree, equal
     distances in the order of the tree's points (the first in the cloud first): a tile, whose
     points are the cloud's in the same order, then picks the same neighbours as the whole
     cloud where several lie at the k-th distance (a millimetre grid makes that common).
     Ties reaching past ``TIE_SLACK`` further neighbours keep the tree's order."""
     kk = min(k + TIE_SLACK, tree.n)
-    dist, idx = tree.query(queries, k=kk)
+    dist, idx = tree.query(queries, k=kk, workers=workers)
     dist, idx = dist.reshape(len(queries), kk), idx.reshape(len(queries), kk)
     order = np.lexsort((idx, dist), axis=-1)[:, :k]
     return np.take_along_axis(dist, order, axis=1), np.take_along_axis(idx, order, axis=1)

@@ -107,30 +107,35 @@ def sigma_of_residuals(parts: Iterable[np.ndarray], sample: int = SIGMA_SAMPLE) 
     return float(MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
 
 
-def full_residuals(xyz: np.ndarray, k: int) -> np.ndarray:
+def full_residuals(xyz: np.ndarray, k: int, origin: np.ndarray | None = None) -> np.ndarray:
     """(n,) full-patch studentised residual of each point (NaN where untested), as
     ``sigma="auto"`` estimates from them (the points centred as :func:`detect_height_field`
-    centres them)."""
+    centres them, neighbours found relative to ``origin`` as there)."""
+    from algorithms.detached import relative
     from algorithms.height_field_fits import all_terms
 
     arr = check_xyz(xyz)
     if len(arr) == 0:
         return np.zeros(0)
     local = arr - arr.mean(axis=0)
-    return studentised_full(all_terms(local, neighbours(local, k)))
+    return studentised_full(all_terms(local, neighbours(relative(arr, origin), k)))
 
 
 def neighbours(xyz: np.ndarray, k: int) -> np.ndarray:
-    """(n, k + 1) indices of each point's k + 1 nearest points (itself normally first)."""
+    """(n, k + 1) indices of each point's k + 1 nearest points (itself normally first); equal
+    distances in the points' order (:func:`algorithms.detached.nearest_first`), so a tile,
+    whose points are the cloud's in the same order and at the same coordinates, picks the
+    whole cloud's neighbours."""
     from scipy.spatial import cKDTree
+
+    from algorithms.detached import nearest_first
 
     tree = cKDTree(xyz)
     n = len(xyz)
     kk = min(k + 1, n)
     out = np.empty((n, kk), dtype=np.int64)
     for s in range(0, n, KNN_BATCH):
-        _, idx = tree.query(xyz[s:s + KNN_BATCH], k=kk, workers=-1)
-        out[s:s + KNN_BATCH] = idx.reshape(-1, kk)
+        out[s:s + KNN_BATCH] = nearest_first(tree, xyz[s:s + KNN_BATCH], kk, workers=-1)[1]
     return out
 
 
@@ -260,8 +265,9 @@ def detect_height_field(
     low : also score small pieces under the lowest ground-like surface (step 6).
     spacing_xy, voxel : the low test's horizontal spacing and voxel size, or "auto" to measure
         them here (a run tile by tile measures them over the whole cloud first).
-    origin : (3,) the corner of the low test's voxel and cell grids (default: the lowest
-        coordinates); runs that share it put a point in the same voxels.
+    origin : (3,) the corner of the low test's voxel and cell grids and of the coordinates
+        neighbours are found in (default: the lowest coordinates); runs that share it put a
+        point in the same voxels and give it the same neighbours.
 
     Returns
     -------
@@ -279,8 +285,11 @@ def detect_height_field(
     if n == 0:
         info.update(sigma=None, sigma_source="none", points_tested=0, points_flagged=0)
         return DetectorResult(np.zeros(0), np.zeros(0, bool), float(threshold), info)
+    from algorithms.detached import relative
+
     local = arr - arr.mean(axis=0)
-    terms = all_terms(local, neighbours(local, k))
+    grid_local = relative(arr, origin)  # the same coordinates in a tile: the same neighbours
+    terms = all_terms(local, neighbours(grid_local, k))
     if sigma == "auto":
         sig, source = estimate_sigma(terms), "auto"
     else:
@@ -290,9 +299,7 @@ def detect_height_field(
     score = scores_from_terms(terms, sig, float(rms_weight), ONE_SIDED_NZ if one_sided else 2.0,
                               HALF_GATE, MAX_LEVERAGE)
     if low:
-        from algorithms.detached import relative
-
-        under, info["low_test"] = low_scores(relative(arr, origin), sig, spacing_xy, voxel)
+        under, info["low_test"] = low_scores(grid_local, sig, spacing_xy, voxel)
         info["low_test"]["points_flagged"] = int(np.count_nonzero(under > threshold))
         score = np.fmax(score, under)  # either test where the other did not apply
     flagged = score > threshold
@@ -335,7 +342,7 @@ def estimate_values(xyz: np.ndarray, params: HeightFieldParameters,
 
     name = pending_estimate(params)
     if name == "sigma":
-        return full_residuals(xyz, params.k)
+        return full_residuals(xyz, params.k, origin)
     local = relative(check_xyz(xyz), origin)
     if name == "spacing_xy":
         return xy_kth_distance(local)
