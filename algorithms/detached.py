@@ -40,6 +40,16 @@ lowest surface around it. Tuned on the Zurich (LAStools) and laspy append-bug ti
 ``shared/data/airborne``; the other five airborne tiles and the seven ISPRS samples were only
 used to check. Not in the paper (Leslar, Wang & Hu 2010); pure numpy/scipy.
 
+Tile by tile (the notes before :func:`pending_estimate`): the median spacing, the horizontal
+spacing and the voxel size are whole-cloud quantities, measured from values every point has from
+its neighbourhood alone (the spacings' subsample is every m-th point in file order, which a tiled
+run reproduces from the points' values gathered in file order); every grid (voxels, floor and pit
+cells) starts at a corner given by the caller, the file's lower-left corner in the pipeline,
+rather than at the points' own lowest corner, so a tile puts each point in the whole cloud's
+cells (this shifts the grids of a whole-cloud run by less than a cell: on the airborne tiles the
+pieces test flags a few returns more or fewer). Equal distances at the k-th neighbour are broken
+by position (:func:`nearest_first`), so a tile picks the whole cloud's neighbours.
+
 Chen, Z., Devereux, B., Gao, B., Amable, G. (2012). Upward-fusion urban DTM generating method
 using airborne lidar data. ISPRS J. Photogramm. Remote Sens. 72, 121-130 (extended local
 minimum).
@@ -47,7 +57,9 @@ minimum).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 
@@ -85,6 +97,16 @@ class DetachedParameters(Parameters):
     pit_radius: float = param(
         3.0, "Metres (at least 4 x the point spacing): a return lower than every other return "
         "this close is a pit; 0 turns that test off.", ge=0, le=1000)
+    spacing: float | Literal["auto"] = param(
+        "auto", "Metres: the cloud's median nearest-neighbour distance, or 'auto' to measure "
+        "it (reported in the statistics).", ge=0, le=1000)
+    spacing_xy: float | Literal["auto"] = param(
+        "auto", "Metres: the cloud's horizontal point spacing, or 'auto' to measure it "
+        "(reported in the statistics).", ge=0, le=1000)
+    voxel: float | Literal["auto"] = param(
+        "auto", "Metres: the voxel size the cloud is cut into pieces at, or 'auto' for the "
+        "finest at which the surfaces are whole (reported); 0 turns the pieces test off.",
+        ge=0, le=1000)
 
 _BATCH = 20_000  # candidate points per batch of plane fits (bounds memory to ~100 MB)
 
@@ -102,13 +124,21 @@ def small_clusters(xyz: np.ndarray, link: float, max_cluster: int) -> np.ndarray
     |D| > max_cluster), so all its link neighbours are among its kNN and in D: D is a link
     component. Hence the small components of both graphs are the same.
     """
+    label = cluster_labels(xyz, link, max_cluster)
+    return np.bincount(label)[label] <= max_cluster if len(xyz) else np.zeros(0, dtype=bool)
+
+
+def cluster_labels(xyz: np.ndarray, link: float, max_cluster: int) -> np.ndarray:
+    """(n,) component labels of the graph linking each point to its ``max_cluster`` nearest
+    neighbours within ``link`` (:func:`small_clusters`: its small components are the link
+    graph's)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     n = len(xyz)
     if n == 0:
-        return np.zeros(0, dtype=bool)
+        return np.zeros(0, dtype=np.int64)
     k = min(max_cluster + 1, n)  # the point itself plus max_cluster others
     dist, idx = cKDTree(xyz).query(xyz, k=k, distance_upper_bound=link)
     dist = dist.reshape(n, k)
@@ -117,8 +147,7 @@ def small_clusters(xyz: np.ndarray, link: float, max_cluster: int) -> np.ndarray
     rows = np.repeat(np.arange(n), k)[ok.ravel()]
     graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, idx[ok])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
-    size = np.bincount(label)
-    return size[label] <= max_cluster
+    return label
 
 
 def envelope_scores(
@@ -148,10 +177,28 @@ def envelope_scores(
     tree = cKDTree(xyz[surf, :2])
     for start in range(0, cand.size, _BATCH):
         ci = cand[start:start + _BATCH]
-        _, j = tree.query(xyz[ci, :2], k=k)
+        _, j = nearest_first(tree, xyz[ci, :2], k)
         r, res_nb = _plane_residuals(xyz[surf[j.reshape(len(ci), k)]], xyz[ci])
         score[ci] = np.maximum((res_nb.min(axis=1) - r) / below, (r - res_nb.max(axis=1)) / above)
     return score
+
+
+#: Neighbours past the k-th looked at to break ties in distance by position.
+TIE_SLACK = 8
+
+
+def nearest_first(tree: Any, queries: np.ndarray, k: int,
+                  workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(m, k) distances and indices of each query's k nearest points of a cKDTree, equal
+    distances in the order of the tree's points (the first in the cloud first): a tile, whose
+    points are the cloud's in the same order, then picks the same neighbours as the whole
+    cloud where several lie at the k-th distance (a millimetre grid makes that common).
+    Ties reaching past ``TIE_SLACK`` further neighbours keep the tree's order."""
+    kk = min(k + TIE_SLACK, tree.n)
+    dist, idx = tree.query(queries, k=kk, workers=workers)
+    dist, idx = dist.reshape(len(queries), kk), idx.reshape(len(queries), kk)
+    order = np.lexsort((idx, dist), axis=-1)[:, :k]
+    return np.take_along_axis(dist, order, axis=1), np.take_along_axis(idx, order, axis=1)
 
 
 def _plane_residuals(
@@ -188,7 +235,11 @@ def _plane_residuals(
 
 def median_spacing(xyz: np.ndarray, max_points: int = 100_000) -> float:
     """Median distance of a point to its nearest other point (a regular subsample of at most
-    ``max_points`` query points, all points in the tree). xyz : (n, 3). 0.0 for n < 2."""
+    ``max_points`` query points, all points in the tree). xyz : (n, 3). 0.0 for n < 2.
+
+    The subsample is every ``n // max_points``-th point in array order, so a run tile by tile
+    gets the same median from every point's :func:`nearest_distance` in file order
+    (:func:`strided_median`)."""
     if len(xyz) < 2:
         return 0.0
     from scipy.spatial import cKDTree
@@ -201,7 +252,8 @@ def median_spacing(xyz: np.ndarray, max_points: int = 100_000) -> float:
 def xy_spacing(xyz: np.ndarray, k: int = 8, max_points: int = 100_000) -> float:
     """Horizontal spacing of a cloud: sqrt(pi / k) x the median XY distance to the k-th nearest
     other point (1 / sqrt(density) for points spread over a surface; a regular subsample of at
-    most ``max_points`` query points). xyz : (n, 3). 0.0 for n <= k."""
+    most ``max_points`` query points, as :func:`median_spacing`). xyz : (n, 3). 0.0 for
+    n <= k."""
     if len(xyz) <= k:
         return 0.0
     from scipy.spatial import cKDTree
@@ -211,17 +263,73 @@ def xy_spacing(xyz: np.ndarray, k: int = 8, max_points: int = 100_000) -> float:
     return float(np.median(dist[:, k]) * np.sqrt(np.pi / k))
 
 
+#: Neighbours of :func:`xy_spacing`.
+XY_SPACING_K = 8
+#: Query points of :func:`median_spacing` and :func:`xy_spacing`.
+SPACING_SAMPLE = 100_000
+
+
+def nearest_distance(xyz: np.ndarray) -> np.ndarray:
+    """(n,) each point's distance to its nearest other point (inf without one): what
+    :func:`median_spacing` takes the median of."""
+    from scipy.spatial import cKDTree
+
+    if len(xyz) == 0:
+        return np.zeros(0)
+    dist, _ = cKDTree(xyz).query(xyz, k=[2])
+    return dist[:, 0]
+
+
+def xy_kth_distance(xyz: np.ndarray, k: int = XY_SPACING_K) -> np.ndarray:
+    """(n,) each point's XY distance to its k-th nearest other point (inf without one): what
+    :func:`xy_spacing` takes the median of."""
+    from scipy.spatial import cKDTree
+
+    if len(xyz) == 0:
+        return np.zeros(0)
+    dist, _ = cKDTree(xyz[:, :2]).query(xyz[:, :2], k=[k + 1])
+    return dist[:, 0]
+
+
+def strided_median(parts: Iterable[np.ndarray], max_points: int = SPACING_SAMPLE) -> float:
+    """The median of every ``max(1, m // max_points)``-th finite value of ``parts`` (consecutive
+    pieces of one array, m finite values in all), first included; NaN for m = 0. With the
+    values of :func:`nearest_distance` of all n points (n >= 2) it is :func:`median_spacing`;
+    of :func:`xy_kth_distance`, over sqrt(pi / k), :func:`xy_spacing`."""
+    parts = list(parts)
+    finite = sum(int(np.count_nonzero(np.isfinite(p))) for p in parts)
+    if finite == 0:
+        return float("nan")
+    step = max(1, finite // max_points)
+    kept, offset = [], 0
+    for part in parts:
+        v = np.asarray(part)[np.isfinite(part)]
+        kept.append(v[(-offset) % step::step])
+        offset += v.size
+    return float(np.median(np.concatenate(kept)))
+
+
+def grid_index(coords: np.ndarray, size: float, origin: np.ndarray) -> np.ndarray:
+    """(n, d) int64 index of each point's cell of ``size`` metres in the grid whose corner is
+    ``origin`` (d = 2: XY cells, 3: voxels): one formula, so two runs with the same origin
+    put the same point in the same cell."""
+    d = len(origin)
+    return np.floor((coords[:, :d] - origin) / size).astype(np.int64)
+
+
 #: The 13 voxel offsets that, with their opposites, make a voxel's 26 neighbours.
 _FORWARD = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
                      if (i, j, k) > (0, 0, 0)])
 
 
-def voxel_pieces(xyz: np.ndarray, size: float) -> np.ndarray:
+def voxel_pieces(xyz: np.ndarray, size: float, origin: np.ndarray | None = None) -> np.ndarray:
     """Pieces of a cloud: points joined through occupied voxels that share a face, an edge or
     a corner (26-connectivity). Points closer than ``size`` always share a piece; points more
     than 2 sqrt(3) ``size`` apart are joined only through others.
 
-    xyz : (n, 3) metres; size : voxel edge in metres. Returns (n,) int piece labels 0..p-1.
+    xyz : (n, 3) metres; size : voxel edge in metres; origin : (3,) a corner of the voxel grid
+    (default: the lowest coordinates; a run tile by tile shares one with the whole cloud's).
+    Returns (n,) int piece labels 0..p-1.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -229,7 +337,8 @@ def voxel_pieces(xyz: np.ndarray, size: float) -> np.ndarray:
     n = len(xyz)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
-    ijk = np.floor((xyz - xyz.min(axis=0)) / size).astype(np.int64) + 1
+    ijk = grid_index(xyz, size, xyz.min(axis=0) if origin is None else origin)
+    ijk += 1 - ijk.min(axis=0)
     dims = ijk.max(axis=0) + 2
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
     voxels, inverse = np.unique(key, return_inverse=True)
@@ -257,49 +366,125 @@ PLATEAU_RATIO = 0.8
 LARGEST_VOXEL = 16.0
 
 
+def voxel_ladder(start: float = 0.0) -> list[float]:
+    """The voxel sizes :func:`surface_scale` may look at: 0.1 m x sqrt(2)^i from the first at
+    least ``start``, up to the first beyond ``LARGEST_VOXEL`` (whose share decides whether the
+    last size is a plateau), computed step by step as the search steps."""
+    size = 0.1
+    while size < start:
+        size *= np.sqrt(2.0)
+    sizes = [size]
+    while sizes[-1] <= LARGEST_VOXEL * 1.0001:
+        sizes.append(sizes[-1] * np.sqrt(2.0))
+    return [float(v) for v in sizes]
+
+
+def choose_scale(small_counts: list[int], n: int) -> int | None:
+    """Index into the ladder of the size :func:`surface_scale` chooses from the number of points
+    in small pieces at each size (at least up to the decision), None when none qualifies."""
+    for i, count in enumerate(small_counts[:-1]):
+        share = count / max(n, 1)
+        if share <= SMALL_PIECE_SHARE:
+            return i
+        if share <= PLATEAU_MAX_SHARE and small_counts[i + 1] > PLATEAU_RATIO * share * n:
+            return i
+    return None
+
+
+def small_pieces(xyz: np.ndarray, size: float, piece_points: int,
+                 origin: np.ndarray | None = None) -> np.ndarray:
+    """(n,) bool: the points in pieces (:func:`voxel_pieces`) of fewer than ``piece_points``."""
+    label = voxel_pieces(xyz, size, origin)
+    return np.bincount(label)[label] < piece_points if len(xyz) else np.zeros(0, bool)
+
+
 def surface_scale(
-    xyz: np.ndarray, piece_points: int, start: float = 0.0
+    xyz: np.ndarray, piece_points: int, start: float = 0.0, origin: np.ndarray | None = None,
 ) -> tuple[float | None, np.ndarray]:
     """The finest voxel size at which the real surfaces of a cloud are whole.
 
-    Sizes 0.1 m x sqrt(2)^i from ``start`` up to ``LARGEST_VOXEL`` are tried; the share of
-    points in pieces (:func:`voxel_pieces`) of fewer than ``piece_points`` points falls as the
-    surfaces join, then stays flat while only detached clumps (and real patches cut off by data
-    gaps) remain small. The size chosen is the first where that share is at most
-    ``SMALL_PIECE_SHARE``, or at most ``PLATEAU_MAX_SHARE`` and still more than
-    ``PLATEAU_RATIO`` of itself at the next size.
+    Sizes 0.1 m x sqrt(2)^i from ``start`` up to ``LARGEST_VOXEL`` are tried
+    (:func:`voxel_ladder`); the share of points in pieces (:func:`voxel_pieces`, grid corner
+    ``origin``) of fewer than ``piece_points`` points falls as the surfaces join, then stays
+    flat while only detached clumps (and real patches cut off by data gaps) remain small. The
+    size chosen is the first where that share is at most ``SMALL_PIECE_SHARE``, or at most
+    ``PLATEAU_MAX_SHARE`` and still more than ``PLATEAU_RATIO`` of itself at the next size
+    (:func:`choose_scale`: a run tile by tile chooses from every point's
+    :func:`small_ladder`).
 
     Returns (size, small): the size (None when none qualifies) and the (n,) bool mask of the
     points in small pieces at that size (all False for None).
     """
     n = len(xyz)
-    size = 0.1
-    while size < start:
-        size *= np.sqrt(2.0)
-
-    def small_at(s: float) -> np.ndarray:
-        label = voxel_pieces(xyz, s)
-        counts = np.bincount(label)
-        return counts[label] < piece_points
-
-    small = small_at(size)
-    while size <= LARGEST_VOXEL * 1.0001:
-        share = np.count_nonzero(small) / max(n, 1)
-        if share <= SMALL_PIECE_SHARE:
-            return float(size), small
-        bigger = small_at(size * np.sqrt(2.0))
-        if share <= PLATEAU_MAX_SHARE and np.count_nonzero(bigger) > PLATEAU_RATIO * share * n:
-            return float(size), small
-        size, small = size * np.sqrt(2.0), bigger
+    sizes = voxel_ladder(start)
+    masks: list[np.ndarray | None] = [small_pieces(xyz, sizes[0], piece_points, origin)]
+    counts = [int(np.count_nonzero(masks[0]))]
+    for size in sizes[1:]:
+        masks.append(small_pieces(xyz, size, piece_points, origin))
+        counts.append(int(np.count_nonzero(masks[-1])))
+        chosen = choose_scale(counts, n)
+        if chosen is not None:
+            mask = masks[chosen]
+            assert mask is not None
+            return sizes[chosen], mask
+        masks[-2] = None  # decided against: only the latest is still needed
     return None, np.zeros(n, dtype=bool)
 
 
-def lowest_per_cell(xyz: np.ndarray, index: np.ndarray, cell: float) -> np.ndarray:
+def small_ladder(xyz: np.ndarray, piece_points: int, start: float = 0.0,
+                 origin: np.ndarray | None = None) -> np.ndarray:
+    """(n,) float: bit i set where the point lies in a small piece at ``voxel_ladder(start)[i]``
+    (at most 18 bits: exact in a float). Summed over a cloud's points, the counts
+    :func:`surface_scale` chooses from (:func:`scale_of_ladder`)."""
+    local = xyz - (xyz.min(axis=0) if origin is None else origin) if len(xyz) else xyz
+    return ladder_pieces(local, piece_points, start)[0]
+
+
+def ladder_pieces(local: np.ndarray, piece_points: int,
+                  start: float) -> tuple[np.ndarray, np.ndarray]:
+    """(bits, reach), each (n,): :func:`small_ladder`'s bits of ``local`` (grids at 0) and the
+    largest :func:`piece_reach` over the ladder, from one cut per size."""
+    bits = np.zeros(len(local), dtype=np.int64)
+    reach = np.zeros(len(local))
+    if len(local) == 0:
+        return bits.astype(np.float64), reach
+    for i, size in enumerate(voxel_ladder(start)):
+        label = voxel_pieces(local, size, np.zeros(3))
+        small = np.bincount(label)[label] < piece_points
+        bits |= small.astype(np.int64) << i
+        if small.any():
+            around = label_extent(local[small, :2], label[small]) + 3 * size
+            reach[small] = np.maximum(reach[small], around)
+    return bits.astype(np.float64), reach
+
+
+def scale_of_ladder(parts: Iterable[np.ndarray], piece_points: int, start: float) -> float:
+    """The size :func:`surface_scale` chooses for the cloud whose points' :func:`small_ladder`
+    values are ``parts`` (NaN: not in the cloud); 0.0 where it chooses none or the cloud has at
+    most ``piece_points`` points (as :func:`detect_detached` leaves the test out)."""
+    sizes = voxel_ladder(start)
+    counts = np.zeros(len(sizes), dtype=np.int64)
+    n = 0
+    for part in parts:
+        v = np.asarray(part)
+        bits = v[np.isfinite(v)].astype(np.int64)
+        n += bits.size
+        for i in range(len(sizes)):
+            counts[i] += int(np.count_nonzero((bits >> i) & 1))
+    if piece_points <= 0 or n <= piece_points:
+        return 0.0
+    chosen = choose_scale(counts.tolist(), n)
+    return 0.0 if chosen is None else sizes[chosen]
+
+
+def lowest_per_cell(xyz: np.ndarray, index: np.ndarray, cell: float,
+                    origin: np.ndarray | None = None) -> np.ndarray:
     """Indices (into xyz) of the lowest point of ``xyz[index]`` in each occupied XY cell of
-    ``cell`` metres."""
+    ``cell`` metres (grid corner ``origin`` (2,), default the lowest XY of ``xyz[index]``)."""
     if index.size == 0:
         return index
-    ij = np.floor((xyz[index, :2] - xyz[index, :2].min(axis=0)) / cell).astype(np.int64)
+    ij = grid_index(xyz[index], cell, xyz[index, :2].min(axis=0) if origin is None else origin)
+    ij -= ij.min(axis=0)
     key = ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1]
     order = np.lexsort((xyz[index, 2], key))
     first = np.r_[True, key[order][1:] != key[order][:-1]]
@@ -339,8 +524,7 @@ def floor_scores(
     tree = cKDTree(xyz[reference, :2])
     for start in range(0, cand.size, _BATCH):
         ci = cand[start:start + _BATCH]
-        dist, j = tree.query(xyz[ci, :2], k=k)
-        dist, j = dist.reshape(len(ci), k), j.reshape(len(ci), k)
+        dist, j = nearest_first(tree, xyz[ci, :2], k)
         r, res, grad = _plane_residuals(xyz[reference[j]], xyz[ci], lower_refit=True,
                                         slope=True)
         floor = np.quantile(res, quantile, axis=1)
@@ -351,13 +535,15 @@ def floor_scores(
 
 
 def pit_scores(
-    xyz: np.ndarray, radius: float, *, below: float = 1.0, min_points: int = 8
+    xyz: np.ndarray, radius: float, *, below: float = 1.0, min_points: int = 8,
+    origin: np.ndarray | None = None,
 ) -> np.ndarray:
     """How far the lowest return of each cell lies under every other return around it.
 
     xyz : (n, 3) metres. Cells are ``radius`` / 3 wide; the lowest return of a cell is compared
     with the lowest other return of the 7 x 7 cells around it (about ``radius`` metres each
-    way) when they hold at least ``min_points`` others. Returns (n,) float64:
+    way) when they hold at least ``min_points`` others; the cells' grid starts at ``origin``
+    (2,) (default: the lowest XY). Returns (n,) float64:
     (lowest other z - z) / below for those returns, NaN for all others.
     """
     n = len(xyz)
@@ -365,8 +551,8 @@ def pit_scores(
     if n < 2 or radius <= 0:
         return score
     reach = 3
-    ij = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / (radius / reach)).astype(np.int64)
-    ij += reach + 1
+    ij = grid_index(xyz, radius / reach, xyz[:, :2].min(axis=0) if origin is None else origin)
+    ij += reach + 1 - ij.min(axis=0)
     width = ij[:, 1].max() + reach + 2
     key = ij[:, 0] * width + ij[:, 1]
     order = np.lexsort((xyz[:, 2], key))
@@ -405,10 +591,20 @@ def detect_detached(
     k_floor: int = 64,
     floor_quantile: float = 0.05,
     pit_radius: float = 3.0,
+    spacing: float | str = "auto",
+    spacing_xy: float | str = "auto",
+    voxel: float | str = "auto",
+    origin: np.ndarray | None = None,
 ) -> DetectorResult:
     """Flag returns detached from the surface: the three tests of the module docstring.
 
-    xyz : (n, 3) float64 metres (any frame; the arithmetic is centred).
+    xyz : (n, 3) float64 metres (any frame; the arithmetic is relative to ``origin``).
+    ``spacing``, ``spacing_xy``, ``voxel``: the cloud's median nearest-neighbour distance,
+    horizontal spacing and voxel size, "auto" to measure them here (:func:`median_spacing`,
+    :func:`xy_spacing`, :func:`surface_scale`); a run tile by tile measures them over the whole
+    cloud first and gives them. ``origin`` : (3,) the corner of every grid (voxels, floor and
+    pit cells; default the lowest coordinates): runs that share it put a point in the same
+    cells.
     Returns a DetectorResult: score = the largest score of the tests that applied to the point
     (:func:`envelope_scores`, :func:`floor_scores`, :func:`pit_scores`), NaN where none did;
     critical value 1. ``info`` reports the link, voxel size and radius used and what each test
@@ -422,25 +618,28 @@ def detect_detached(
     """
     DetachedParameters(link=link, link_spacing=link_spacing, max_cluster=max_cluster,
                        k_surface=k_surface, below=below, above=above, piece_points=piece_points,
-                       k_floor=k_floor, floor_quantile=floor_quantile, pit_radius=pit_radius)
+                       k_floor=k_floor, floor_quantile=floor_quantile, pit_radius=pit_radius,
+                       spacing=spacing, spacing_xy=spacing_xy, voxel=voxel)
     xyz = check_xyz(xyz)
-    local = xyz - xyz.mean(axis=0) if len(xyz) else xyz
-    spacing = median_spacing(local)
-    link_used = max(float(link), link_spacing * spacing)
+    local = relative(xyz, origin)
+    spacing_used = median_spacing(local) if spacing == "auto" else float(spacing)
+    link_used = max(float(link), link_spacing * spacing_used)
     candidate = small_clusters(local, link_used, max_cluster)
     cluster = envelope_scores(local, candidate, k_surface=k_surface, below=below, above=above)
 
-    horizontal = xy_spacing(local)
+    horizontal = xy_spacing(local) if spacing_xy == "auto" else float(spacing_xy)
     piece = np.full(len(xyz), np.nan)
-    voxel = None
-    if piece_points > 0 and len(xyz) > piece_points:
-        voxel, small = surface_scale(local, piece_points, start=horizontal)
-        if voxel is not None and small.any():
-            reference = lowest_per_cell(local, np.flatnonzero(~small), 2 * voxel)
+    voxel_used = voxel_size(local, piece_points, horizontal, voxel)
+    if voxel_used is not None:
+        small = small_pieces(local, voxel_used, piece_points, np.zeros(3))
+        if small.any():
+            reference = lowest_per_cell(local, np.flatnonzero(~small), 2 * voxel_used,
+                                        np.zeros(2))
             piece = floor_scores(local, small, reference, k_floor=k_floor,
-                                 quantile=floor_quantile, below=below, reach=4 * voxel)
-    radius = max(float(pit_radius), 4 * horizontal) if pit_radius > 0 else 0.0
-    pit = pit_scores(local, radius, below=below) if radius > 0 else np.full(len(xyz), np.nan)
+                                 quantile=floor_quantile, below=below, reach=4 * voxel_used)
+    radius = pit_radius_used(pit_radius, horizontal)
+    pit = (pit_scores(local, radius, below=below, origin=np.zeros(2)) if radius > 0
+           else np.full(len(xyz), np.nan))
 
     score = np.fmax(np.fmax(cluster, piece), pit)
     flagged = np.nan_to_num(score, nan=0.0) > 1.0
@@ -451,14 +650,209 @@ def detect_detached(
 
     info = {
         "link": float(link), "link_spacing": float(link_spacing),
-        "median_spacing": spacing, "link_used": link_used,
+        "median_spacing": spacing_used, "link_used": link_used,
         "max_cluster": int(max_cluster), "k_surface": int(k_surface),
         "below": float(below), "above": float(above),
         "candidates": int(candidate.sum()),
         "xy_spacing": horizontal,
         "clusters": found(cluster),
-        "pieces": {"voxel": voxel, "piece_points": int(piece_points), **found(piece)},
+        "pieces": {"voxel": voxel_used, "piece_points": int(piece_points), **found(piece)},
         "pits": {"radius": radius, **found(pit)},
         "points_tested": int(np.isfinite(score).sum()), "points_flagged": int(flagged.sum()),
     }
     return DetectorResult(score=score, flagged=flagged, critical_value=1.0, info=info)
+
+
+def relative(xyz: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
+    """``xyz`` minus ``origin`` (default its lowest coordinates): the frame every grid of
+    :func:`detect_detached` starts at 0 in."""
+    if origin is None:
+        return xyz - xyz.min(axis=0) if len(xyz) else xyz.copy()
+    return xyz - np.asarray(origin, dtype=np.float64)
+
+
+def voxel_size(local: np.ndarray, piece_points: int, horizontal: float,
+               voxel: float | str) -> float | None:
+    """The voxel size of the pieces test (None: the test is off): measured with "auto"
+    (:func:`surface_scale`, grid corner at 0), else the given one (0: off)."""
+    if voxel != "auto":
+        return float(voxel) if float(voxel) > 0 else None
+    if piece_points <= 0 or len(local) <= piece_points:
+        return None
+    return surface_scale(local, piece_points, start=horizontal, origin=np.zeros(3))[0]
+
+
+def pit_radius_used(pit_radius: float, horizontal: float) -> float:
+    """The pits test's radius: ``pit_radius``, at least 4 x the horizontal spacing (0: off)."""
+    return max(float(pit_radius), 4 * horizontal) if pit_radius > 0 else 0.0
+
+
+# --------------------------------------------------------------------------- tile by tile
+#
+# A run tile by tile (a region of the cloud: a tile and the points around it) gives the whole
+# cloud's result for a point when everything the point's result depends on lies in the region.
+# Each quantity below comes with the XY metres around a point it depended on in the region, so
+# that any point outside the region that could change it is nearer than that: a result whose
+# reach is at most the distance from the point to the region's edge is the whole cloud's.
+#
+# - Small clusters: a component found small in the region is the whole cloud's unless a
+#   member has a link neighbour outside the region (reach: the component's XY extent + link);
+#   a component found large is large in the whole cloud (the region's graph is part of it).
+# - Pieces at a voxel size: the same with the 26 voxels around a member (reach: the piece's
+#   extent + 3 voxels, more than the 2 sqrt(2) voxels XY a neighbour voxel spans).
+# - Envelope of a candidate: its k_surface nearest surface points in XY, exact when every
+#   point as near has its cluster exact. Floor of a point in a small piece: its k_floor
+#   nearest lowest-cell points, exact when every cell that near (its points lie within the
+#   k_floor-th distance + a cell's diagonal) has its points and their pieces exact.
+# - Pits: the 7 x 7 cells around the point's cell, 4 sqrt(2) cells away at most.
+
+#: The estimates a run tile by tile makes over the whole cloud first, in order.
+ESTIMATES = ("spacing", "spacing_xy", "voxel")
+
+
+def pending_estimate(params: DetachedParameters) -> str | None:
+    """The first of :data:`ESTIMATES` still "auto" (the voxel only where the pieces test is
+    on), None when all are given."""
+    for name in ESTIMATES:
+        if getattr(params, name) == "auto" and (name != "voxel" or params.piece_points > 0):
+            return name
+    return None
+
+
+def estimate_values(xyz: np.ndarray, params: DetachedParameters,
+                    origin: np.ndarray | None) -> np.ndarray:
+    """(n,) each point's value for the pending estimate (:func:`nearest_distance`,
+    :func:`xy_kth_distance`, :func:`small_ladder`), from its neighbourhood alone."""
+    local = relative(check_xyz(xyz), origin)
+    name = pending_estimate(params)
+    if name == "spacing":
+        return nearest_distance(local)
+    if name == "spacing_xy":
+        return xy_kth_distance(local)
+    if name == "voxel":
+        return ladder_pieces(local, params.piece_points, float(params.spacing_xy))[0]
+    raise ValueError("every estimate of these parameters is given")
+
+
+def pin_estimate(params: DetachedParameters,
+                 parts: list[np.ndarray]) -> tuple[DetachedParameters, dict[str, float]]:
+    """The parameters with the pending estimate fixed from every point's value (``parts``: in
+    file order), as the whole cloud's run measures it, and the statistics' note on it."""
+    from dataclasses import replace
+
+    name = pending_estimate(params)
+    if name == "spacing":
+        value = strided_median(parts)
+        value = value if np.isfinite(value) else 0.0  # fewer than 2 points
+        return replace(params, spacing=value), {"median_spacing": value}
+    if name == "spacing_xy":
+        value = strided_median(parts) * float(np.sqrt(np.pi / XY_SPACING_K))
+        value = value if np.isfinite(value) else 0.0  # at most XY_SPACING_K points
+        return replace(params, spacing_xy=value), {"xy_spacing": value}
+    if name == "voxel":
+        value = scale_of_ladder(parts, params.piece_points, float(params.spacing_xy))
+        return replace(params, voxel=value), {}
+    raise ValueError("every estimate of these parameters is given")
+
+
+def tile_reach(xyz: np.ndarray, params: DetachedParameters, where: np.ndarray,
+               origin: np.ndarray | None) -> np.ndarray:
+    """(n,) XY metres around each point of the mask ``where`` (others: 0) its result depended
+    on in this cloud (a region of a larger one: see above); with an estimate pending, that of
+    its value (:func:`estimate_values`)."""
+    local = relative(check_xyz(xyz), origin)
+    out = np.zeros(len(local))
+    if not where.any():
+        return out
+    name = pending_estimate(params)
+    if name == "spacing":
+        out[where] = nearest_distance(local)[where]
+    elif name == "spacing_xy":
+        out[where] = xy_kth_distance(local)[where]
+    elif name == "voxel":
+        out = ladder_pieces(local, params.piece_points, float(params.spacing_xy))[1]
+    else:
+        out = _result_reach(local, params, where)
+    return np.where(where, out, 0.0)
+
+
+def piece_reach(local: np.ndarray, size: float, piece_points: int) -> np.ndarray:
+    """(n,) 0 for points in pieces of at least ``piece_points`` points (large in any larger
+    cloud), the piece's XY extent + 3 voxels for the others."""
+    label = voxel_pieces(local, size, np.zeros(3)) if len(local) else np.zeros(0, np.int64)
+    small = np.bincount(label)[label] < piece_points if len(local) else np.zeros(0, bool)
+    return np.where(small, label_extent(local[:, :2], label) + 3 * size, 0.0)
+
+
+def label_extent(xy: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """(n,) the diagonal of the XY bounding box of each point's label: no two points of a
+    label are further apart."""
+    if len(xy) == 0:
+        return np.zeros(0)
+    order = np.argsort(label, kind="stable")
+    sorted_label = label[order]
+    starts = np.flatnonzero(np.r_[True, sorted_label[1:] != sorted_label[:-1]])
+    lo = np.minimum.reduceat(xy[order], starts, axis=0)
+    hi = np.maximum.reduceat(xy[order], starts, axis=0)
+    extent = np.hypot(*(hi - lo).T)
+    out = np.empty(len(xy))
+    out[order] = np.repeat(extent, np.diff(np.r_[starts, len(xy)]))
+    return out
+
+
+def _result_reach(local: np.ndarray, params: DetachedParameters,
+                  where: np.ndarray) -> np.ndarray:
+    """The reach of :func:`detect_detached`'s result with every estimate given."""
+    from scipy.spatial import cKDTree
+
+    p = params
+    link_used = max(float(p.link), p.link_spacing * float(p.spacing))
+    label = cluster_labels(local, link_used, p.max_cluster)
+    candidate = np.bincount(label)[label] <= p.max_cluster
+    out = np.where(candidate, label_extent(local[:, :2], label) + link_used, 0.0)
+    cand = np.flatnonzero(candidate & where)
+    if cand.size:
+        surf = np.flatnonzero(~candidate)
+        if surf.size < p.k_surface:
+            out[cand] = np.inf  # a larger cloud may hold more surface points
+        else:
+            dist, _ = cKDTree(local[surf, :2]).query(local[cand, :2], k=[p.k_surface])
+            out[cand] = np.maximum(out[cand], reach_through(local, cand, dist[:, 0], out))
+    voxel = voxel_size(local, p.piece_points, float(p.spacing_xy), p.voxel)
+    if voxel is not None:
+        around = piece_reach(local, voxel, p.piece_points)
+        out = np.maximum(out, around)
+        small = np.flatnonzero((around > 0) & where)
+        if small.size:
+            reference = lowest_per_cell(local, np.flatnonzero(around == 0), 2 * voxel,
+                                        np.zeros(2))
+            if reference.size < p.k_floor:
+                out[small] = np.inf
+            else:
+                dist, _ = cKDTree(local[reference, :2]).query(local[small, :2], k=[p.k_floor])
+                cells = dist[:, 0] + 3 * voxel  # a cell 2 voxels wide: diagonal 2 sqrt(2)
+                out[small] = np.maximum(out[small], reach_through(local, small, cells, around))
+    radius = pit_radius_used(p.pit_radius, float(p.spacing_xy))
+    if radius > 0:
+        out = np.maximum(out, 4 * np.sqrt(2.0) * radius / 3 * 1.001)
+    return out
+
+
+def reach_through(local: np.ndarray, points: np.ndarray, radius: np.ndarray,
+                   reach: np.ndarray) -> np.ndarray:
+    """(m,) for each of ``points``, the largest of ``radius`` and |q - p| + reach(q) over the
+    points q within ``radius`` (XY) whose own reach is not 0: what depending on everything
+    that near reaches."""
+    from scipy.spatial import cKDTree
+
+    out = radius.astype(np.float64).copy()
+    uncertain = np.flatnonzero(reach > 0)
+    if uncertain.size == 0:
+        return out
+    xy = local[uncertain, :2]
+    near = cKDTree(xy).query_ball_point(local[points, :2], radius)
+    for i, found in enumerate(near):
+        if found:
+            d = np.hypot(*(xy[found] - local[points[i], :2]).T)
+            out[i] = max(out[i], float(np.max(d + reach[uncertain[found]])))
+    return out

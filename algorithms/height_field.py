@@ -107,30 +107,35 @@ def sigma_of_residuals(parts: Iterable[np.ndarray], sample: int = SIGMA_SAMPLE) 
     return float(MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
 
 
-def full_residuals(xyz: np.ndarray, k: int) -> np.ndarray:
+def full_residuals(xyz: np.ndarray, k: int, origin: np.ndarray | None = None) -> np.ndarray:
     """(n,) full-patch studentised residual of each point (NaN where untested), as
     ``sigma="auto"`` estimates from them (the points centred as :func:`detect_height_field`
-    centres them)."""
+    centres them, neighbours found relative to ``origin`` as there)."""
+    from algorithms.detached import relative
     from algorithms.height_field_fits import all_terms
 
     arr = check_xyz(xyz)
     if len(arr) == 0:
         return np.zeros(0)
     local = arr - arr.mean(axis=0)
-    return studentised_full(all_terms(local, neighbours(local, k)))
+    return studentised_full(all_terms(local, neighbours(relative(arr, origin), k)))
 
 
 def neighbours(xyz: np.ndarray, k: int) -> np.ndarray:
-    """(n, k + 1) indices of each point's k + 1 nearest points (itself normally first)."""
+    """(n, k + 1) indices of each point's k + 1 nearest points (itself normally first); equal
+    distances in the points' order (:func:`algorithms.detached.nearest_first`), so a tile,
+    whose points are the cloud's in the same order and at the same coordinates, picks the
+    whole cloud's neighbours."""
     from scipy.spatial import cKDTree
+
+    from algorithms.detached import nearest_first
 
     tree = cKDTree(xyz)
     n = len(xyz)
     kk = min(k + 1, n)
     out = np.empty((n, kk), dtype=np.int64)
     for s in range(0, n, KNN_BATCH):
-        _, idx = tree.query(xyz[s:s + KNN_BATCH], k=kk, workers=-1)
-        out[s:s + KNN_BATCH] = idx.reshape(-1, kk)
+        out[s:s + KNN_BATCH] = nearest_first(tree, xyz[s:s + KNN_BATCH], kk, workers=-1)[1]
     return out
 
 
@@ -153,6 +158,13 @@ class HeightFieldParameters(Parameters):
     low: bool = param(
         True, "Also score clumps under the lowest ground-like surface around them (multi-path "
         "mirror returns under the road).")
+    spacing_xy: float | Literal["auto"] = param(
+        "auto", "Metres: the cloud's horizontal point spacing, where the low test's voxel sizes "
+        "start, or 'auto' to measure it.", ge=0, le=1000)
+    voxel: float | Literal["auto"] = param(
+        "auto", "Metres: the voxel size the low test cuts the cloud into pieces at, or 'auto' "
+        "for the finest at which the surfaces are whole (reported); 0: none, the low test "
+        "scores nothing.", ge=0, le=1000)
 
 
 #: Points per cell a piece needs to be a real surface for the ``low`` test (detached's).
@@ -169,20 +181,23 @@ LOW_MAX_SLOPE = 1.0
 FLOOR_NEIGHBOURS = 5
 
 
-def floor_cells(local: np.ndarray, index: np.ndarray, cell: float) -> np.ndarray:
+def floor_cells(local: np.ndarray, index: np.ndarray, cell: float,
+                origin: np.ndarray | None = None) -> np.ndarray:
     """Indices of the lowest returns of ``local[index]`` per ``cell``-metre XY cell
-    (:func:`algorithms.detached.lowest_per_cell`) that sample a floor: a surface seen from
-    above spans an area, so at least FLOOR_NEIGHBOURS of the 8 neighbouring cells hold a lowest
-    return within LOW_MAX_SLOPE x their distance in height. The lowest returns of a facade
-    whose foot is hidden (by parked cars) form a line: left out.
+    (:func:`algorithms.detached.lowest_per_cell`, grid corner ``origin`` (2,), default the
+    lowest XY of ``local[index]``) that sample a floor: a surface seen from above spans an
+    area, so at least FLOOR_NEIGHBOURS of the 8 neighbouring cells hold a lowest return within
+    LOW_MAX_SLOPE x their distance in height. The lowest returns of a facade whose foot is
+    hidden (by parked cars) form a line: left out.
     """
-    from algorithms.detached import lowest_per_cell
+    from algorithms.detached import grid_index, lowest_per_cell
 
-    lowest = lowest_per_cell(local, index, cell)
-    if lowest.size == 0:
-        return lowest
-    ij = np.floor((local[lowest, :2] - local[index, :2].min(axis=0)) / cell).astype(np.int64)
-    ij += 1
+    if index.size == 0:
+        return index
+    corner = local[index, :2].min(axis=0) if origin is None else origin
+    lowest = lowest_per_cell(local, index, cell, corner)
+    ij = grid_index(local[lowest], cell, corner)
+    ij += 1 - ij.min(axis=0)
     width = int(ij[:, 1].max()) + 2
     key = ij[:, 0] * width + ij[:, 1]
     order = np.argsort(key)
@@ -199,22 +214,28 @@ def floor_cells(local: np.ndarray, index: np.ndarray, cell: float) -> np.ndarray
     return np.sort(lowest[order[support >= FLOOR_NEIGHBOURS]])
 
 
-def low_scores(local: np.ndarray, sigma: float) -> tuple[np.ndarray, dict]:
+def low_scores(local: np.ndarray, sigma: float, spacing_xy: float | str = "auto",
+               voxel: float | str = "auto") -> tuple[np.ndarray, dict]:
     """(n,) how many sigmas each point of a small piece lies under the ground-like floor around
-    it (step 6 of the module docstring; NaN where untested) and the info."""
-    from algorithms.detached import floor_scores, surface_scale, xy_spacing
+    it (step 6 of the module docstring; NaN where untested) and the info. ``local``: the
+    points relative to the corner of the voxel and cell grids; ``spacing_xy``, ``voxel``:
+    given, or "auto" to measure them here (:func:`algorithms.detached.xy_spacing`,
+    :func:`algorithms.detached.surface_scale`)."""
+    from algorithms.detached import floor_scores, small_pieces, voxel_size, xy_spacing
 
     score = np.full(len(local), np.nan)
-    if len(local) <= LOW_PIECE_POINTS:
+    horizontal = xy_spacing(local) if spacing_xy == "auto" else float(spacing_xy)
+    size = voxel_size(local, LOW_PIECE_POINTS, horizontal, voxel)
+    if size is None:
         return score, {"voxel": None, "points_tested": 0}
-    voxel, small = surface_scale(local, LOW_PIECE_POINTS, start=xy_spacing(local))
-    if voxel is None or not small.any():
-        return score, {"voxel": voxel, "points_tested": 0}
-    reference = floor_cells(local, np.flatnonzero(~small), 2 * voxel)
+    small = small_pieces(local, size, LOW_PIECE_POINTS, np.zeros(3))
+    if not small.any():
+        return score, {"voxel": size, "points_tested": 0}
+    reference = floor_cells(local, np.flatnonzero(~small), 2 * size, np.zeros(2))
     score = floor_scores(local, small, reference, k_floor=LOW_K_FLOOR,
-                         quantile=LOW_FLOOR_QUANTILE, below=sigma, reach=4 * voxel,
+                         quantile=LOW_FLOOR_QUANTILE, below=sigma, reach=4 * size,
                          max_slope=LOW_MAX_SLOPE)
-    return score, {"voxel": float(voxel), "points_tested": int(np.isfinite(score).sum())}
+    return score, {"voxel": float(size), "points_tested": int(np.isfinite(score).sum())}
 
 
 def detect_height_field(
@@ -226,6 +247,9 @@ def detect_height_field(
     rms_weight: float = 0.5,
     one_sided: bool = True,
     low: bool = True,
+    spacing_xy: float | str = "auto",
+    voxel: float | str = "auto",
+    origin: np.ndarray | None = None,
 ) -> DetectorResult:
     """Edge-aware leave-one-out height-field outlier test (see the module docstring).
 
@@ -239,6 +263,11 @@ def detect_height_field(
     rms_weight : weight of a fit's own residual standard error in its term (0: residual only).
     one_sided : on ground-like fits count only residuals above the surface.
     low : also score small pieces under the lowest ground-like surface (step 6).
+    spacing_xy, voxel : the low test's horizontal spacing and voxel size, or "auto" to measure
+        them here (a run tile by tile measures them over the whole cloud first).
+    origin : (3,) the corner of the low test's voxel and cell grids and of the coordinates
+        neighbours are found in (default: the lowest coordinates); runs that share it put a
+        point in the same voxels and give it the same neighbours.
 
     Returns
     -------
@@ -246,7 +275,7 @@ def detect_height_field(
     fit is singular), flagged = score > threshold, critical_value = threshold.
     """
     HeightFieldParameters(k=k, sigma=sigma, threshold=threshold, rms_weight=rms_weight,
-                          one_sided=one_sided, low=low)
+                          one_sided=one_sided, low=low, spacing_xy=spacing_xy, voxel=voxel)
     from algorithms.height_field_fits import all_terms, scores_from_terms
 
     arr = check_xyz(xyz)
@@ -256,8 +285,11 @@ def detect_height_field(
     if n == 0:
         info.update(sigma=None, sigma_source="none", points_tested=0, points_flagged=0)
         return DetectorResult(np.zeros(0), np.zeros(0, bool), float(threshold), info)
+    from algorithms.detached import relative
+
     local = arr - arr.mean(axis=0)
-    terms = all_terms(local, neighbours(local, k))
+    grid_local = relative(arr, origin)  # the same coordinates in a tile: the same neighbours
+    terms = all_terms(local, neighbours(grid_local, k))
     if sigma == "auto":
         sig, source = estimate_sigma(terms), "auto"
     else:
@@ -267,7 +299,7 @@ def detect_height_field(
     score = scores_from_terms(terms, sig, float(rms_weight), ONE_SIDED_NZ if one_sided else 2.0,
                               HALF_GATE, MAX_LEVERAGE)
     if low:
-        under, info["low_test"] = low_scores(local, sig)
+        under, info["low_test"] = low_scores(grid_local, sig, spacing_xy, voxel)
         info["low_test"]["points_flagged"] = int(np.count_nonzero(under > threshold))
         score = np.fmax(score, under)  # either test where the other did not apply
     flagged = score > threshold
@@ -277,3 +309,113 @@ def detect_height_field(
         points_flagged=int(np.count_nonzero(flagged)),
     )
     return DetectorResult(score=score, flagged=flagged, critical_value=float(threshold), info=info)
+
+
+# --------------------------------------------------------------------------- tile by tile
+#
+# As :mod:`algorithms.detached` runs tile by tile (see the notes there): sigma, the horizontal
+# spacing and the voxel size are measured over the whole cloud first, one after the other; a
+# point's result then depends on its k nearest neighbours, on its piece (the piece's extent + 3
+# voxels while it is small in the region) and, in a small piece, on the floor cells within its
+# LOW_K_FLOOR-th nearest one and their 8 neighbours (2 cells, 6 voxels, further).
+
+#: The estimates a run tile by tile makes over the whole cloud first, in order.
+ESTIMATES = ("sigma", "spacing_xy", "voxel")
+
+
+def pending_estimate(params: HeightFieldParameters) -> str | None:
+    """The first of :data:`ESTIMATES` still "auto" (those of the low test only with ``low``),
+    None when all are given."""
+    for name in ESTIMATES:
+        if getattr(params, name) == "auto" and (name == "sigma" or params.low):
+            return name
+    return None
+
+
+def estimate_values(xyz: np.ndarray, params: HeightFieldParameters,
+                    origin: np.ndarray | None) -> np.ndarray:
+    """(n,) each point's value for the pending estimate: its full-patch residual
+    (:func:`full_residuals`), its XY distance to its 8th neighbour
+    (:func:`algorithms.detached.xy_kth_distance`) or its small-piece bits
+    (:func:`algorithms.detached.small_ladder`)."""
+    from algorithms.detached import ladder_pieces, relative, xy_kth_distance
+
+    name = pending_estimate(params)
+    if name == "sigma":
+        return full_residuals(xyz, params.k, origin)
+    local = relative(check_xyz(xyz), origin)
+    if name == "spacing_xy":
+        return xy_kth_distance(local)
+    if name == "voxel":
+        return ladder_pieces(local, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
+    raise ValueError("every estimate of these parameters is given")
+
+
+def pin_low_estimate(params: HeightFieldParameters,
+                     parts: list[np.ndarray]) -> tuple[HeightFieldParameters, dict]:
+    """The parameters with the low test's pending estimate (``spacing_xy`` or ``voxel``) fixed
+    from every point's value, as the whole cloud's run measures it, and the note on it."""
+    from dataclasses import replace
+
+    from algorithms.detached import XY_SPACING_K, scale_of_ladder, strided_median
+
+    name = pending_estimate(params)
+    if name == "spacing_xy":
+        value = strided_median(parts) * float(np.sqrt(np.pi / XY_SPACING_K))
+        return replace(params, spacing_xy=value if np.isfinite(value) else 0.0), {}
+    if name == "voxel":
+        value = scale_of_ladder(parts, LOW_PIECE_POINTS, float(params.spacing_xy))
+        return replace(params, voxel=value), {}
+    raise ValueError(f"height_field's {name} is not the low test's")
+
+
+def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray,
+               origin: np.ndarray | None) -> np.ndarray:
+    """(n,) XY metres around each point of the mask ``where`` (others: 0) its result, or with
+    an estimate pending its value, depended on in this cloud (a region of a larger one)."""
+    from scipy.spatial import cKDTree
+
+    from algorithms.detached import (
+        ladder_pieces,
+        piece_reach,
+        reach_through,
+        relative,
+        voxel_size,
+        xy_kth_distance,
+    )
+
+    arr = check_xyz(xyz)
+    n = len(arr)
+    out = np.zeros(n)
+    if not where.any():
+        return out
+    name = pending_estimate(params)
+    local = relative(arr, origin)
+    if name == "spacing_xy":
+        return np.where(where, xy_kth_distance(local), 0.0)
+    if name == "voxel":
+        reach = ladder_pieces(local, LOW_PIECE_POINTS, float(params.spacing_xy))[1]
+        return np.where(where, reach, 0.0)
+    kk = params.k + 1  # the point itself and its k neighbours
+    if n < kk:
+        return np.where(where, np.inf, 0.0)
+    dist, _ = cKDTree(local).query(local[where], k=[kk])
+    out[where] = dist[:, 0]
+    if name is None and params.low:
+        size = voxel_size(local, LOW_PIECE_POINTS, float(params.spacing_xy), params.voxel)
+        if size is not None:
+            around = piece_reach(local, size, LOW_PIECE_POINTS)
+            out = np.maximum(out, around)
+            small = np.flatnonzero((around > 0) & where)
+            if small.size:
+                reference = floor_cells(local, np.flatnonzero(around == 0), 2 * size,
+                                        np.zeros(2))
+                if reference.size < LOW_K_FLOOR:
+                    out[small] = np.inf
+                else:
+                    d, _ = cKDTree(local[reference, :2]).query(local[small, :2],
+                                                               k=[LOW_K_FLOOR])
+                    cells = d[:, 0] + 6 * size  # a cell's 8 neighbours: 2 cells further
+                    out[small] = np.maximum(out[small],
+                                            reach_through(local, small, cells, around))
+    return np.where(where, out, 0.0)

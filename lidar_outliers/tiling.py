@@ -596,10 +596,18 @@ def _reach_violations(
         used = spec.reach(cloud.subset(index), stage.parameters(), needed[index])[needed[index]]
         worst = float(used.max()) if used.size else 0.0
         if worst > halos[i]:
-            wider[i] = max(halos[i] * HALO_GROWTH, worst * 1.01) if math.isfinite(worst) else (
-                math.inf)
+            wider[i] = (max(halos[i] * HALO_GROWTH, worst * 1.01) if math.isfinite(worst)
+                        else unbounded_growth(halos[i]))
             grew = True
     return wider if grew else None
+
+
+def unbounded_growth(halo: float) -> float:
+    """The next halo for a point that needs more than the points at hand (reach inf: fewer
+    than k neighbours, too few surface points or floor cells around): the halo grows by
+    :data:`HALO_GROWTH` until the region holds enough, or every point, rather than jumping to
+    the whole cloud (a sparse tile over water of a large file would load all of it)."""
+    return halo * HALO_GROWTH if halo > 0 else math.inf
 
 
 def save_result(path: Path, result: dict[str, Any]) -> None:

@@ -250,3 +250,30 @@ def street_scene(path: Path, shuffled: bool = False) -> Path:
 #: transient's stage on :func:`street_scene`: radius for its density, max_extent below the
 #: canopy's length and above the box's.
 STREET_TRANSIENT = {"detector": "transient", "radius": 0.5, "max_extent": 6.0}
+
+
+def airborne_scene(path: Path, seed: int = 4) -> Path:
+    """A 32 x 32 m airborne-like cloud (4 returns a square metre): rolling, sloped ground, an
+    8 x 6 m flat roof 4 m over it, a clump of 40 returns 4 m under the ground (low noise), a
+    flock of 6 returns 30 m over it (birds) and one return 2.5 m under it (a pit); in scan
+    order, near a UTM coordinate. For ``detached`` tile by tile against the whole cloud."""
+    rng = np.random.default_rng(seed)
+
+    def ground(xy: np.ndarray) -> np.ndarray:
+        return 0.04 * xy[:, 0] + 0.4 * np.sin(xy[:, 1] / 4) + 0.2 * np.cos(xy[:, 0] / 5)
+
+    xy = rng.uniform(0, 32, (4096, 2))
+    z = ground(xy) + rng.normal(0, 0.03, len(xy))
+    roof = (np.abs(xy[:, 0] - 20) < 4) & (np.abs(xy[:, 1] - 10) < 3)
+    z[roof] = ground(np.array([[20.0, 10.0]]))[0] + 4.0 + rng.normal(0, 0.02, roof.sum())
+    clump_xy = rng.normal([9.0, 22.0], 0.5, (40, 2))
+    clump = np.c_[clump_xy, ground(clump_xy) - 4.0 + rng.normal(0, 0.3, 40)]
+    birds_xy = rng.normal([24.0, 25.0], 0.8, (6, 2))
+    birds = np.c_[birds_xy, ground(birds_xy) + 30.0 + rng.normal(0, 0.5, 6)]
+    pit = np.array([[14.3, 5.7, ground(np.array([[14.3, 5.7]]))[0] - 2.5]])
+    xyz = np.vstack([np.c_[xy, z], clump, birds, pit])
+    xyz = xyz[np.argsort(xyz[:, 1] + 0.01 * xyz[:, 0], kind="stable")]  # scan lines along x
+    return write_las(path, xyz + [600_000, 5_000_000, 300],
+                     gps_time=np.linspace(2000, 2010, len(xyz)),
+                     point_source_id=np.ones(len(xyz), np.uint16),
+                     offsets=(600_000, 5_000_000, 0), vlrs=())

@@ -59,7 +59,8 @@ Run = Callable[[Cloud, Any], DetectorResult | GroundResult]
 Halo = Callable[[Any], "float | None"]
 #: (n,) metres of the neighbourhood each point of ``cloud`` actually used (k-th neighbour,
 #: search radius), for the points of the (n,) bool mask (others: anything): for detectors
-#: whose reach depends on the data, checked against the halo.
+#: whose reach depends on the data, checked against the halo; inf: more points than the cloud
+#: at hand holds (the halo grows until they are there).
 Reach = Callable[[Cloud, Any, np.ndarray], np.ndarray]
 
 
@@ -73,7 +74,10 @@ class Estimate:
     parameters with the estimate fixed, and the statistics' info on it, from the values of all
     the points in file order (``parts``: consecutive pieces). A tiled run computes the values
     tile by tile, pins, then runs the tiles with the pinned parameters: the whole cloud's
-    result.
+    result. Several parameters are estimated one round each, in an order the detector keeps:
+    ``applies`` holds until the last is fixed, ``values`` and ``pin`` serve the first not yet
+    fixed (``detached``: its spacings, then its voxel size, which starts at one of them).
+    ``reach`` then answers for the values of that round.
     """
 
     applies: Callable[[Any], bool]
@@ -112,7 +116,7 @@ def no_halo(_params: Any) -> None:
 def knn_reach(xyz: np.ndarray, k: int, where: np.ndarray) -> np.ndarray:
     """(n,) distance from each point of the mask ``where`` to its k-th nearest point (itself
     counted first; 0 outside the mask); inf where the cloud has fewer than k points (every
-    point then needs the whole cloud)."""
+    point then needs more points than these: a tile's halo grows until it holds k)."""
     from scipy.spatial import cKDTree
 
     n = len(xyz)

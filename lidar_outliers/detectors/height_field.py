@@ -1,5 +1,12 @@
 """``height_field``: leave-one-out local height fields with edge-aware half patches and a robust
-sigma (:mod:`algorithms.height_field`)."""
+sigma (:mod:`algorithms.height_field`).
+
+It runs tile by tile: ``sigma: auto`` and the low test's horizontal spacing and voxel size are
+measured over the whole cloud first (:class:`~lidar_outliers.detectors.base.Estimate`, one
+round each), the low test's grids start at the file's lower-left corner in a tile as in the
+whole cloud, and each point reports how far its result reached
+(:func:`algorithms.height_field.tile_reach`).
+"""
 
 from __future__ import annotations
 
@@ -10,33 +17,53 @@ import numpy as np
 from algorithms.height_field import HeightFieldParameters
 from algorithms.result import DetectorResult
 from lidar_outliers.cloud import Cloud
-from lidar_outliers.detectors.base import Detector, Estimate, knn_reach
+from lidar_outliers.detectors.base import Detector, Estimate
+from lidar_outliers.detectors.detached import LADDER, grid_origin
 
 
 def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
     from algorithms.height_field import detect_height_field
 
-    return detect_height_field(cloud.xyz, **params.as_dict())
+    return detect_height_field(cloud.xyz, **params.as_dict(), origin=grid_origin(cloud))
 
 
-def residuals(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
-    from algorithms.height_field import full_residuals
+def reach(cloud: Cloud, params: HeightFieldParameters, where: np.ndarray) -> np.ndarray:
+    from algorithms.height_field import LOW_PIECE_POINTS, pending_estimate, tile_reach
 
-    return full_residuals(cloud.xyz, params.k)
+    if pending_estimate(params) == "voxel":
+        return np.where(where, LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[1],
+                        0.0)
+    return tile_reach(cloud.xyz, params, where, grid_origin(cloud))
 
 
-def pin_sigma(
-    params: HeightFieldParameters, parts: list[np.ndarray]
-) -> tuple[HeightFieldParameters, dict[str, Any]]:
-    """``sigma: auto`` from every point's full-patch residual, as the whole-cloud run makes it."""
+def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
+    from algorithms.height_field import LOW_PIECE_POINTS, estimate_values, pending_estimate
+
+    if pending_estimate(params) == "voxel":
+        return LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
+    return estimate_values(cloud.xyz, params, grid_origin(cloud))
+
+
+def pin(params: HeightFieldParameters,
+        parts: list[np.ndarray]) -> tuple[HeightFieldParameters, dict[str, Any]]:
+    """``sigma: auto`` from every point's full-patch residual, as the whole-cloud run makes it;
+    then the low test's spacing and voxel size."""
     from dataclasses import replace
 
-    from algorithms.height_field import sigma_of_residuals
+    from algorithms.height_field import pending_estimate, pin_low_estimate, sigma_of_residuals
 
+    if pending_estimate(params) != "sigma":
+        return pin_low_estimate(params, parts)
     sigma = sigma_of_residuals(parts)
     if not sigma > 0:  # as detect_height_field: a perfect surface leaves rounding only
         sigma = float(np.finfo(float).eps)
     return replace(params, sigma=sigma), {"sigma": sigma, "sigma_source": "auto"}
+
+
+def pending(params: HeightFieldParameters) -> bool:
+    from algorithms.height_field import pending_estimate
+
+    return pending_estimate(params) is not None
 
 
 DETECTOR = Detector(
@@ -46,13 +73,9 @@ DETECTOR = Detector(
     summary=("Leave-one-out local height fields with edge-aware half patches and robust sigma; "
              "clumps under the lowest ground-like surface (mirror returns)."),
     flag_bit=64,
-    # k nearest neighbours besides the point; sigma "auto" is estimated from every point's
-    # residual first. The low test's pieces and voxel size are the whole cloud's: not in tiles
-    halo=lambda params: None if params.low else 2.0,
-    whole_cloud=("its low test (low: true, the default) cuts the cloud into pieces joined "
-                 "through occupied voxels, at a voxel size found over the whole cloud; with "
-                 "low: false it runs in tiles"),
-    reach=lambda cloud, params, where: knn_reach(cloud.xyz, params.k + 1, where),
-    estimate=Estimate(applies=lambda params: params.sigma == "auto", values=residuals,
-                      pin=pin_sigma),
+    # k nearest neighbours besides the point: a first guess (the reach widens it, and the low
+    # test's pieces and floors reach further)
+    halo=lambda params: 2.0,
+    reach=reach,
+    estimate=Estimate(applies=pending, values=values, pin=pin),
 )

@@ -9,14 +9,21 @@ import numpy as np
 import pytest
 
 from algorithms.detached import (
+    XY_SPACING_K,
     detect_detached,
     envelope_scores,
     floor_scores,
     median_spacing,
+    nearest_distance,
+    nearest_first,
     pit_scores,
+    scale_of_ladder,
     small_clusters,
+    small_ladder,
+    strided_median,
     surface_scale,
     voxel_pieces,
+    xy_kth_distance,
     xy_spacing,
 )
 
@@ -200,6 +207,39 @@ def test_surface_scale_joins_the_surface_and_leaves_clumps_apart():
     assert size is not None and size < 2.0
     assert small[len(ground):].all() and small[:len(ground)].mean() <= 0.01
     assert surface_scale(ground[:500], piece_points=1000)[0] is None  # no piece can be large
+
+
+def test_whole_cloud_estimates_from_every_points_value_in_pieces():
+    """What a run tile by tile gathers (each point's value, in order, in uneven pieces) gives
+    the whole cloud's spacings and voxel size exactly, subsample included."""
+    rng = np.random.default_rng(13)
+    xyz = np.vstack([rough_terrain(13, 5000), rng.normal([20, 20, -20], 0.5, (50, 3))])
+    cuts = [0, 7, 1200, 1201, 3900, len(xyz)]
+
+    def pieces(values: np.ndarray) -> list[np.ndarray]:
+        return [values[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+
+    assert strided_median(pieces(nearest_distance(xyz)), 300) == median_spacing(xyz, 300)
+    xy = strided_median(pieces(xy_kth_distance(xyz)), 300) * np.sqrt(np.pi / XY_SPACING_K)
+    assert xy == xy_spacing(xyz, max_points=300)
+    corner = xyz.min(axis=0)
+    bits = small_ladder(xyz, 1000, start=0.3, origin=corner)
+    assert scale_of_ladder(pieces(bits), 1000, 0.3) == surface_scale(xyz, 1000, 0.3, corner)[0]
+    assert scale_of_ladder(pieces(bits), 0, 0.3) == 0.0  # the test off
+
+
+def test_ties_at_the_kth_neighbour_go_to_the_first_point():
+    """On a grid many points lie at the k-th distance: the first of them in the cloud's order
+    are taken, whatever else the tree holds (a tile holds fewer points than the cloud)."""
+    from scipy.spatial import cKDTree
+
+    g = np.arange(0.0, 6.0)
+    xy = np.c_[np.repeat(g, 6), np.tile(g, 6)]
+    _, idx = nearest_first(cKDTree(xy), np.array([[2.0, 2.0]]), 3)
+    assert idx[0].tolist() == [14, 8, 13]  # itself, then the first two of its four at 1 m
+    near = np.flatnonzero(np.abs(xy - 2).max(axis=1) <= 2)
+    _, sub = nearest_first(cKDTree(xy[near]), np.array([[2.0, 2.0]]), 3)
+    assert near[sub[0]].tolist() == idx[0].tolist()
 
 
 def test_floor_matches_explicit_least_squares():

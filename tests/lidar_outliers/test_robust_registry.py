@@ -71,7 +71,8 @@ def test_snow_without_intensity_is_a_clear_message(tmp_path):
 def test_detached_through_the_pipeline_matches_the_algorithm():
     cloud = read_cloud(AIRBORNE)
     flags = run(cloud, {"detector": "detached"})
-    np.testing.assert_array_equal(flags, detect_detached(cloud.xyz).flagged)
+    corner = np.r_[cloud.anchor, 0.0]  # the pipeline's grids start at the file's corner
+    np.testing.assert_array_equal(flags, detect_detached(cloud.xyz, origin=corner).flagged)
     assert 400 < flags.sum() < 700
 
 

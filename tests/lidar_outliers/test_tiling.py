@@ -3,6 +3,7 @@ much smaller than the features; the tile files, halos and merge on their own."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import laspy
@@ -21,7 +22,14 @@ from lidar_outliers.tiling import (
     partition,
     run_tile,
 )
-from tests.lasfiles import STREET_TRANSIENT, scanned_tile_scene, street_scene, tile_scene, write_las
+from tests.lasfiles import (
+    STREET_TRANSIENT,
+    airborne_scene,
+    scanned_tile_scene,
+    street_scene,
+    tile_scene,
+    write_las,
+)
 
 SENSOR = (600_012.0, 5_000_012.0, 52.0)
 TILE = 3.0  # metres: the box is 6 x 4 m, the sections 2 m, the patches about 1 m across
@@ -39,6 +47,14 @@ PIPELINES = {
     "dror, then section": [
         {"detector": "dror", "origin": SENSOR, "multiplier": 8.0},
         {"detector": "section", "section_size": 2.0}],
+    "height_field, low": [{"detector": "height_field", "low": True}],
+    "detached": [{"detector": "detached"}],
+    "detached, scaled, then patch": [
+        {"detector": "detached", "piece_points": 200, "k_floor": 16, "k_surface": 32},
+        {"detector": "patch", "k": 30}],
+    "section, then detached, scaled": [  # estimated from the points section left
+        {"detector": "section", "section_size": 2.0},
+        {"detector": "detached", "piece_points": 200, "k_floor": 16, "k_surface": 32}],
 }
 
 
@@ -79,6 +95,9 @@ def test_tiled_run_equals_whole_cloud(scene, tmp_path, name):
     assert stats["overall"] == stats_whole["overall"]
     assert not list(tmp_path.glob(".tiles-*"))  # the tile files are gone
     for sw, st in zip(stats_whole["stages"], stats["stages"], strict=True):
+        if "low_test" in sw["info"]:  # the pieces under the floor are found tile by tile too
+            assert sw["info"]["low_test"]["points_flagged"] > 0
+            assert st["info"]["low_test"]["voxel"] == sw["info"]["low_test"]["voxel"]
         if "sigma_source" in sw["info"]:  # estimated from the whole cloud either way
             assert st["info"]["sigma_source"] == sw["info"]["sigma_source"]
             assert st["info"]["sigma"] == pytest.approx(sw["info"]["sigma"], rel=1e-9)
@@ -131,6 +150,44 @@ def test_streamed_stage_then_tiles_equals_whole_cloud(scanned, tmp_path, name):
     if len(pipeline) > 1 and "short" in name:
         assert stats["stages"][1]["points_flagged"] > 0
     assert not list(tmp_path.glob(".tiles-*"))
+
+
+@pytest.fixture(scope="module")
+def airborne(tmp_path_factory) -> Path:
+    return airborne_scene(tmp_path_factory.mktemp("airborne") / "airborne.las")
+
+
+#: detached with pieces, floors and envelopes scaled to the small scenes, so that their 3 m
+#: tiles run with halos of a few tiles (the defaults need regions of 1000 points and more).
+DETACHED_SCALED = PIPELINES["detached, scaled, then patch"][0]
+
+
+def test_detached_tiles_find_clusters_pieces_and_pits(airborne, tmp_path):
+    """The birds (a small cluster over the envelope), the low clump (a piece under the lowest
+    surface, 13 tiles across with its floor) and the pit: tiles 3 m wide give the whole
+    cloud's flags, scores, spacings and voxel size, with finite halos."""
+    pipeline = {"pipeline": [DETACHED_SCALED]}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    stats_whole = process_file(airborne, whole, pipeline)
+    stats = process_file(airborne, tiled, pipeline, tile_size=TILE)
+    assert stats["mode"] == "tiled" and stats["tiles"]["count"] >= 100
+    assert math.isfinite(stats["tiles"]["halo_max"])
+    info_whole, info = stats_whole["stages"][0]["info"], stats["stages"][0]["info"]
+    for test in ("clusters", "pieces", "pits"):
+        assert info_whole[test]["points_flagged"] > 0, test
+    for key in ("median_spacing", "xy_spacing"):
+        assert info[key] == info_whole[key], key
+    assert info["pieces"]["voxel"] == info_whole["pieces"]["voxel"]
+    _assert_same(_results(whole), _results(tiled), ["detached"])
+    assert stats["overall"] == stats_whole["overall"]
+    # with the estimates fixed, most tiles need a few tiles around them, not the cloud
+    pinned = {**DETACHED_SCALED, "spacing": info_whole["median_spacing"],
+              "spacing_xy": info_whole["xy_spacing"], "voxel": info_whole["pieces"]["voxel"]}
+    params = PipelineParams.model_validate({"pipeline": [pinned]})
+    tiles = partition(airborne, tmp_path / "cells", TILE)
+    halos = [float(run_tile(tiles, c, params, list(params.pipeline))["halo"])
+             for c in sorted(tiles.cells)]
+    assert np.median(halos) <= 2 * TILE
 
 
 @pytest.fixture(scope="module")
@@ -230,7 +287,7 @@ def test_every_detector_declares_whether_it_tiles():
         halo = detector.halo(detector.parameters())
         assert halo is None or halo >= 0, name
     tiled = {name for name, d in DETECTORS.items() if d.halo(d.parameters()) is not None}
-    assert {"patch", "section", "dror", "snow", "transient"} <= tiled
+    assert {"patch", "section", "dror", "snow", "detached", "height_field", "transient"} <= tiled
     streamed = {name for name, d in DETECTORS.items() if d.streams}
     assert streamed == {"temporal"} and not streamed & tiled
 
