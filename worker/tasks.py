@@ -69,11 +69,12 @@ def dispatch_tiles(job_id: str, cells: Sequence[tuple[int, int]]) -> None:
     """Queue one task per tile and after them all the merge; or, while a stage still
     estimates a parameter from the whole cloud, the tiles' values of it and after them the
     task that fixes it (and queues the next round)."""
-    phase, estimated = pending_phase(_storage(), job_id)
+    phase, estimated, round_ = pending_phase(_storage(), job_id)
     # progress: estimates take 5-45 %, the tiles the rest up to 90 % (the merge the last)
     span = (5, 45) if phase is not None else (45, 90) if estimated else (5, 90)
-    header = group(run_tile.s(job_id, list(cell), len(cells), phase, span) for cell in cells)
-    body = merge_tiles.si(job_id) if phase is None else pin_tiles.si(job_id, phase)
+    header = group(run_tile.s(job_id, list(cell), len(cells), phase, span, round_)
+                   for cell in cells)
+    body = merge_tiles.si(job_id) if phase is None else pin_tiles.si(job_id, phase, round_)
     chord(header)(body.set(link_error=[tiles_failed.s(job_id)]))
 
 
@@ -88,14 +89,14 @@ def run_job(job_id: str, requeue: int = 0) -> str | None:
 
 @app.task(name=RUN_TILE_TASK, acks_late=True, reject_on_worker_lost=True, ignore_result=False)
 def run_tile(job_id: str, cell: list[int], total: int, phase: int | None = None,
-             span: tuple[int, int] = (5, 90)) -> bool:
-    """One tile (or its values for stage ``phase``'s estimate); its failure fails the job with
-    the tile's message, then propagates (so the chord knows)."""
+             span: tuple[int, int] = (5, 90), round_: int | None = None) -> bool:
+    """One tile (or its values for stage ``phase``'s estimate in round ``round_``); its failure
+    fails the job with the tile's message, then propagates (so the chord knows)."""
     settings, store, storage = get_settings(), _store(), _storage()
     store.beat([job_id], TILED_HOST)
     try:
         ran = run_job_tile(settings, store, storage, job_id, (int(cell[0]), int(cell[1])),
-                           values_of=phase)
+                           values_of=phase, round_=round_)
     except SoftTimeLimitExceeded:
         fail_tiled_job(store, storage, job_id,
                        f"a tile exceeded the time limit of {settings.task_time_limit} s",
@@ -112,14 +113,14 @@ def run_tile(job_id: str, cell: list[int], total: int, phase: int | None = None,
         raise
     store.beat([job_id], TILED_HOST)
     if ran:
-        _count_tile(store, job_id, cell, total, phase, span)
+        _count_tile(store, job_id, cell, total, phase, span, round_)
     return ran
 
 
 def _count_tile(store: Store, job_id: str, cell: list[int], total: int, phase: int | None,
-                span: tuple[int, int]) -> None:
+                span: tuple[int, int], round_: int | None = None) -> None:
     client = app.backend.client
-    key = _DONE_KEY.format(f"{job_id}:{phase}")
+    key = _DONE_KEY.format(f"{job_id}:{phase}:{round_}")  # each round counts its own tiles
     client.sadd(key, f"{cell[0]},{cell[1]}")  # a set: a tile run twice counts once
     client.expire(key, get_settings().visibility_timeout)
     done = int(client.scard(key))
@@ -129,12 +130,12 @@ def _count_tile(store: Store, job_id: str, cell: list[int], total: int, phase: i
 
 
 @app.task(name=PIN_TILES_TASK, acks_late=True, reject_on_worker_lost=True)
-def pin_tiles(job_id: str, phase: int) -> None:
+def pin_tiles(job_id: str, phase: int, round_: int | None = None) -> None:
     """Fix the estimate from every tile's values, then queue the next round of tiles."""
     settings, store, storage = get_settings(), _store(), _storage()
     store.beat([job_id], TILED_HOST)
     try:
-        pinned = pin_job_stage(settings, store, storage, job_id, phase)
+        pinned = pin_job_stage(settings, store, storage, job_id, phase, round_)
     except LidarOutliersError as exc:
         fail_tiled_job(store, storage, job_id, str(exc))
         raise

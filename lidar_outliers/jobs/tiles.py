@@ -188,17 +188,23 @@ def _stages(params: PipelineParams, doc: dict[str, Any]) -> tuple[PipelineParams
     return resolved, list(stages)
 
 
-def values_name(stage: int, cell: Cell) -> str:
-    return f"values_{stage}_{cell[0]}_{cell[1]}.npz"
+def values_name(stage: int, cell: Cell, round_: int = 0) -> str:
+    return f"values_{round_}_{stage}_{cell[0]}_{cell[1]}.npz"
 
 
-def pending_phase(storage: Storage, job_id: str) -> tuple[int | None, bool]:
+def rounds_done(doc: dict[str, Any]) -> int:
+    """How many rounds over the whole file (estimates, pre-passes) the manifest records: a
+    stage may take several, so the round, not the stage, names a round's tasks and files."""
+    return int(doc.get("rounds", 0))
+
+
+def pending_phase(storage: Storage, job_id: str) -> tuple[int | None, bool, int]:
     """The stage whose estimate or facts from the whole file the job's tiles must gather
-    first (None: the tiles run), and whether such a round came before."""
+    first (None: the tiles run), whether such a round came before, and the round's number."""
     doc = json.loads(storage.read_bytes(layout.tile_key(job_id, MANIFEST)))
     tiles = TileSet.from_json(Path("."), doc)
     return (next_whole_file_step(_stages(PipelineParams(), doc)[1], tiles.prepared),
-            bool(doc.get("estimated")))
+            bool(doc.get("estimated")), rounds_done(doc))
 
 
 def job_cells(storage: Storage, job_id: str) -> list[Cell]:
@@ -207,10 +213,11 @@ def job_cells(storage: Storage, job_id: str) -> list[Cell]:
 
 
 def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: str,
-                  stage: int) -> bool:
+                  stage: int, round_: int | None = None) -> bool:
     """Fix stage ``stage``'s estimate from every tile's values, or combine its facts from the
     whole file and put each cell's part into the storage, and record it in the manifest;
-    False when the job is no longer running or the stage is done already (a re-run)."""
+    False when the job is no longer running or round ``round_`` is done already (a message
+    delivered again; None: the round pending now)."""
     job = store.get_job(job_id)
     if job is None or job.status is not JobStatus.running:
         return False
@@ -218,12 +225,14 @@ def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: st
     try:
         tiles, doc = _manifest(storage, job_id, scratch / "cells")
         params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
-        if next_whole_file_step(stages, tiles.prepared) != stage:
+        current = rounds_done(doc)
+        if next_whole_file_step(stages, tiles.prepared) != stage or (
+                round_ is not None and round_ != current):
             return False
 
         def values() -> Any:
             for cell in sorted(tiles.cells):
-                path = scratch / values_name(stage, cell)
+                path = scratch / values_name(stage, cell, current)
                 try:
                     storage.get_file(layout.tile_key(job_id, path.name), path)
                 except ObjectMissing:
@@ -241,23 +250,25 @@ def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: st
             pinned, info = pin_stage(tiles, stages[stage], values(), scratch / "values")
             doc["stages"][stage] = pinned.model_dump(mode="json")
         doc["estimated"][str(stage)] = {**doc["estimated"].get(str(stage), {}), **info}
+        doc["rounds"] = current + 1
         path = scratch / MANIFEST
         path.write_text(json.dumps(doc))
         storage.put_file(layout.tile_key(job_id, MANIFEST), path, move=True)
         for cell in tiles.cells:
-            quietly(storage.delete, layout.tile_key(job_id, values_name(stage, cell)))
+            quietly(storage.delete, layout.tile_key(job_id, values_name(stage, cell, current)))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return True
 
 
 def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str,
-                 cell: Cell, values_of: int | None = None) -> bool:
+                 cell: Cell, values_of: int | None = None, round_: int | None = None) -> bool:
     """Run one tile of a running job and put its result (replacing an earlier run's); with
     ``values_of``, the values that stage estimates a parameter from, or gathers its facts from
-    the whole file from, instead.
+    the whole file from, instead, for round ``round_`` (None: the round pending now).
 
-    Returns False when the job is no longer running (dismissed, or failed by another tile).
+    Returns False when the job is no longer running (dismissed, or failed by another tile) or
+    the round is over (a message delivered again after its round was pinned).
     Raises what the tile raised; the caller fails the job with it.
     """
     job = store.get_job(job_id)
@@ -269,6 +280,9 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
         params, stages = _stages(PipelineParams.model_validate(job.inputs), doc)
         if tuple(cell) not in tiles.cells:
             raise TileError(f"the job has no tile {cell_name(tuple(cell))}")
+        current = rounds_done(doc)
+        if values_of is not None and round_ is not None and round_ != current:
+            return False
         # a tile needs only which points the streamed stages flagged, not their arrays
         lead = len(doc.get("streamed") or [])
         dropped = None if not lead else np.asarray(
@@ -279,7 +293,7 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
                           values_of=None if prepass else own,
                           prepass_of=own if prepass else None, dropped=dropped)
         path = scratch / (result_name(tuple(cell)) if values_of is None
-                          else values_name(values_of, tuple(cell)))
+                          else values_name(values_of, tuple(cell), current))
         save_result(path, result)
         storage.put_file(layout.tile_key(job_id, path.name), path, move=True)
     finally:
