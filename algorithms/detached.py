@@ -66,6 +66,7 @@ import numpy as np
 from algorithms.checks import check_xyz
 from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
+from algorithms.stats import strided_sample
 
 
 @dataclass(frozen=True)
@@ -296,17 +297,8 @@ def strided_median(parts: Iterable[np.ndarray], max_points: int = SPACING_SAMPLE
     pieces of one array, m finite values in all), first included; NaN for m = 0. With the
     values of :func:`nearest_distance` of all n points (n >= 2) it is :func:`median_spacing`;
     of :func:`xy_kth_distance`, over sqrt(pi / k), :func:`xy_spacing`."""
-    parts = list(parts)
-    finite = sum(int(np.count_nonzero(np.isfinite(p))) for p in parts)
-    if finite == 0:
-        return float("nan")
-    step = max(1, finite // max_points)
-    kept, offset = [], 0
-    for part in parts:
-        v = np.asarray(part)[np.isfinite(part)]
-        kept.append(v[(-offset) % step::step])
-        offset += v.size
-    return float(np.median(np.concatenate(kept)))
+    sample = strided_sample(parts, max_points)
+    return float(np.median(sample)) if sample.size else float("nan")
 
 
 def grid_index(coords: np.ndarray, size: float, origin: np.ndarray) -> np.ndarray:

@@ -58,7 +58,7 @@ import numpy as np
 from algorithms.checks import check_xyz
 from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
-from algorithms.stats import MAD_TO_SIGMA
+from algorithms.stats import MAD_TO_SIGMA, strided_sample
 
 #: Upward-normal z above which a fit is ground-like for the one-sided test (45 degrees).
 ONE_SIDED_NZ = 0.7
@@ -93,17 +93,9 @@ def sigma_of_residuals(parts: Iterable[np.ndarray], sample: int = SIGMA_SAMPLE) 
     (NaN: untested), reading each part twice and keeping only the sample: the MAD of every
     ``max(1, finite // sample)``-th finite residual. ``parts`` is called on twice (a list, or
     memory-mapped pieces of a large array)."""
-    parts = list(parts)
-    finite = sum(int(np.count_nonzero(np.isfinite(p))) for p in parts)
-    if finite == 0:
+    r = strided_sample(parts, sample)
+    if r.size == 0:
         return float("nan")
-    step = max(1, finite // sample)
-    kept, offset = [], 0
-    for part in parts:
-        r = np.asarray(part)[np.isfinite(part)]
-        kept.append(r[(-offset) % step::step])
-        offset += r.size
-    r = np.concatenate(kept)
     return float(MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
 
 

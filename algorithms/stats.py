@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from statistics import NormalDist
 
 import numpy as np
@@ -9,6 +10,23 @@ import numpy as np
 #: Factor that makes the median absolute deviation a consistent estimator of a normal sigma
 #: (1 / Phi^-1(3/4)).
 MAD_TO_SIGMA = 1.482602218505602
+
+
+def strided_sample(parts: Iterable[np.ndarray], max_points: int) -> np.ndarray:
+    """Every ``max(1, m // max_points)``-th finite value of ``parts`` (consecutive pieces of one
+    array, m finite values in all), the first included: the same sample whether the array comes
+    whole or in pieces (a tiled run's per-point values in file order). Empty for m = 0."""
+    parts = list(parts)
+    finite = sum(int(np.count_nonzero(np.isfinite(p))) for p in parts)
+    if finite == 0:
+        return np.zeros(0)
+    step = max(1, finite // max_points)
+    kept, offset = [], 0
+    for part in parts:
+        v = np.asarray(part)[np.isfinite(part)]
+        kept.append(v[(-offset) % step::step])
+        offset += v.size
+    return np.concatenate(kept)
 
 
 def _check_alpha(alpha: float) -> float:

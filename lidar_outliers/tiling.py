@@ -257,15 +257,21 @@ def read_cell(tiles: TileSet, cell: tuple[int, int]) -> np.ndarray:
     """The records of one cell (none for a cell without points); TileError when unreadable."""
     if cell not in tiles.cells:
         return np.zeros(0, dtype=POINT_DTYPE)
-    path = tiles.cell_path(cell)
+    return _read_records(tiles, cell, tiles.cell_path(cell), POINT_DTYPE)
+
+
+def _read_records(tiles: TileSet, cell: tuple[int, int], path: Path, dtype: np.dtype
+                  ) -> np.ndarray:
+    """A file of one record per point of ``cell`` (fetched first when it is not here);
+    TileError when it is unreadable or holds another number of records."""
     if tiles.fetch is not None and not path.exists():
         tiles.fetch(cell, path)
     try:
         size = path.stat().st_size
-        if size != tiles.cells[cell] * POINT_DTYPE.itemsize:
+        if size != tiles.cells[cell] * dtype.itemsize:
             raise TileError(f"tile file {path.name} holds {size} bytes, expected "
                             f"{tiles.cells[cell]} points")
-        return np.fromfile(path, dtype=POINT_DTYPE)
+        return np.fromfile(path, dtype=dtype)
     except OSError as exc:
         raise TileError(f"tile file {path.name} cannot be read: {exc.strerror}") from None
 
@@ -307,18 +313,8 @@ def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = 
 
 def read_known(tiles: TileSet, detector: str, cell: tuple[int, int]) -> np.ndarray:
     """A cell's records of a detector's pre-pass facts (:func:`prepare_stage`)."""
-    path = tiles.folder / known_name(detector, cell)
-    if tiles.fetch is not None and not path.exists():
-        tiles.fetch(cell, path)
-    dtype = known_dtype(detector)
-    try:
-        size = path.stat().st_size
-        if size != tiles.cells[cell] * dtype.itemsize:
-            raise TileError(f"tile file {path.name} holds {size} bytes, expected "
-                            f"{tiles.cells[cell]} points")
-        return np.fromfile(path, dtype=dtype)
-    except OSError as exc:
-        raise TileError(f"tile file {path.name} cannot be read: {exc.strerror}") from None
+    return _read_records(tiles, cell, tiles.folder / known_name(detector, cell),
+                         known_dtype(detector))
 
 
 def region_known(tiles: TileSet, rec: np.ndarray) -> dict[str, np.ndarray] | None:

@@ -77,15 +77,27 @@ def tile_runs(stack: Stack) -> list[int]:
             sorted(stack.logs.glob("worker*.log"))]
 
 
-@pytest.mark.parametrize("inputs", [PIPELINE, ESTIMATED], ids=["tiles", "estimate first"])
-def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, tmp_path, inputs):
-    job = submit(stack, key, scene, inputs)
+def finished(stack: Stack, key: str, job: str, out: Path) -> tuple[Path, dict]:
+    """Wait for a successful job; its cloud written to ``out`` and its statistics."""
     with stack.client(key) as client:
         done = wait_job(client, job, ("successful", "failed"), timeout=300)
         assert done["status"] == "successful", done["message"]
-        out = tmp_path / "service.las"
         out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
-        stats = client.get(f"/jobs/{job}/results/statistics").json()
+        return out, client.get(f"/jobs/{job}/results/statistics").json()
+
+
+def assert_same_scores(a: laspy.LasData, b: laspy.LasData, names: list[str]) -> None:
+    """The detectors' scores agree within float tolerance, NaN (untested) in the same places."""
+    for name in names:
+        x, y = np.asarray(a[f"{name}_score"]), np.asarray(b[f"{name}_score"])
+        assert np.array_equal(np.isnan(x), np.isnan(y))
+        np.testing.assert_allclose(x[~np.isnan(x)], y[~np.isnan(y)], rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("inputs", [PIPELINE, ESTIMATED], ids=["tiles", "estimate first"])
+def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, tmp_path, inputs):
+    job = submit(stack, key, scene, inputs)
+    out, stats = finished(stack, key, job, tmp_path / "service.las")
     assert stats["mode"] == "tiled over workers"
     assert stats["tiles"]["count"] >= 60 and stats["input"]["name"] == "scene.las"
     assert all(runs > 0 for runs in tile_runs(stack)), tile_runs(stack)  # both took part
@@ -96,10 +108,7 @@ def test_tiles_over_two_workers_give_the_one_machine_result(stack, key, scene, t
     assert (a.outlier_flags != 0).any()
     assert np.array_equal(a.outlier_flags, b.outlier_flags)
     assert np.array_equal(a.classification, b.classification)
-    for name in (s["detector"] for s in inputs["pipeline"]):
-        x, y = np.asarray(a[f"{name}_score"]), np.asarray(b[f"{name}_score"])
-        assert np.array_equal(np.isnan(x), np.isnan(y))
-        np.testing.assert_allclose(x[~np.isnan(x)], y[~np.isnan(y)], rtol=1e-5, atol=1e-5)
+    assert_same_scores(a, b, [s["detector"] for s in inputs["pipeline"]])
     assert stats["overall"] == local_stats["overall"]
     for remote, here in zip(stats["stages"], local_stats["stages"], strict=True):
         assert remote["params"] == here["params"]
@@ -119,21 +128,13 @@ STREAMED = {"pipeline": [{"detector": "temporal", "max_gap": 0.001},
 def test_temporal_first_streams_then_tiles_give_the_one_machine_result(stack, key, tmp_path):
     scanned = scanned_tile_scene(tmp_path / "scanned.las", shuffled=True)
     job = submit(stack, key, scanned, STREAMED)
-    with stack.client(key) as client:
-        done = wait_job(client, job, ("successful", "failed"), timeout=300)
-        assert done["status"] == "successful", done["message"]
-        out = tmp_path / "service.las"
-        out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
-        stats = client.get(f"/jobs/{job}/results/statistics").json()
+    out, stats = finished(stack, key, job, tmp_path / "service.las")
     assert stats["mode"] == "tiled over workers" and stats["streamed"]["stages"] == ["temporal"]
     local = tmp_path / "local.las"
     local_stats = process_file(scanned, local, STREAMED)
     a, b = laspy.read(local), laspy.read(out)
     assert np.array_equal(a.outlier_flags, b.outlier_flags)
-    for name in ("temporal", "height_field"):
-        x, y = np.asarray(a[f"{name}_score"]), np.asarray(b[f"{name}_score"])
-        assert np.array_equal(np.isnan(x), np.isnan(y))
-        np.testing.assert_allclose(x[~np.isnan(x)], y[~np.isnan(y)], rtol=1e-5, atol=1e-5)
+    assert_same_scores(a, b, ["temporal", "height_field"])
     assert stats["overall"] == local_stats["overall"]
     for remote, here in zip(stats["stages"], local_stats["stages"], strict=True):
         assert here["points_flagged"] > 0
@@ -151,12 +152,7 @@ def test_transient_job_tiles_after_its_pass_over_the_whole_file(stack, key, tmp_
     street = street_scene(tmp_path / "street.las")
     inputs = {"pipeline": [STREET_TRANSIENT]}
     job = submit(stack, key, street, inputs)
-    with stack.client(key) as client:
-        done = wait_job(client, job, ("successful", "failed"), timeout=300)
-        assert done["status"] == "successful", done["message"]
-        out = tmp_path / "service.las"
-        out.write_bytes(client.get(f"/jobs/{job}/results/cloud").content)
-        stats = client.get(f"/jobs/{job}/results/statistics").json()
+    out, stats = finished(stack, key, job, tmp_path / "service.las")
     assert stats["mode"] == "tiled over workers"
     assert stats["stages"][0]["info"]["scan_lines"].startswith("in file order")
     local = tmp_path / "local.las"
@@ -164,8 +160,7 @@ def test_transient_job_tiles_after_its_pass_over_the_whole_file(stack, key, tmp_
     a, b = laspy.read(local), laspy.read(out)
     assert (a.outlier_flags != 0).any()
     assert np.array_equal(a.outlier_flags, b.outlier_flags)
-    x, y = np.asarray(a.transient_score), np.asarray(b.transient_score)
-    np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-5)
+    assert_same_scores(a, b, ["transient"])
     assert stats["overall"] == local_stats["overall"]
     assert not (stack.data_dir / "jobs" / job / "tiles").exists()
     assert requeues(stack, job) == 0
