@@ -63,13 +63,21 @@ def scanner_origins(
 
     gps_time (n,) s; source_id (n,) scanner id; trajectory (m, 4) rows of time, x, y, z of the
     vehicle's reference point, sorted by time; lever_arms: scanner id -> (forward, left, up)
-    metres in the vehicle frame. The heading is the direction of the horizontal motion between
-    trajectory samples, carried over stops (a standing vehicle keeps its last heading).
+    metres in the vehicle frame. The heading is that of the horizontal motion over a metre of
+    path (:func:`vehicle_pose`).
     """
-    pos, h = vehicle_pose(gps_time, trajectory)
+    return posed_origins(*vehicle_pose(gps_time, trajectory), source_id, lever_arms)
+
+
+def posed_origins(
+    pos: np.ndarray, h: np.ndarray, source_id: np.ndarray,
+    lever_arms: dict[int, tuple[float, float, float]],
+) -> np.ndarray:
+    """Scanner position (n, 3) for each point from the vehicle's reference point ``pos``
+    (n, 3) and heading ``h`` (n,) at its time (:func:`vehicle_pose`) and the lever arms."""
     fwd = np.column_stack([np.cos(h), np.sin(h)])
     left = np.column_stack([-np.sin(h), np.cos(h)])
-    arm = np.zeros((len(gps_time), 3))
+    arm = np.zeros((len(pos), 3))
     for sid, (f, lft, up) in lever_arms.items():
         m = source_id == sid
         arm[m, :2] = f * fwd[m] + lft * left[m]

@@ -136,7 +136,7 @@ def _free_space(
     """(n,) bool seen-through points and the info, on the points the trajectory's time covers;
     ``persistent``: the points the cluster test found recorded again at another moment (they
     win a conflict with a beam, :func:`algorithms.free_space.detect_free_space`)."""
-    from algorithms.free_space import detect_free_space, scanner_origins, vehicle_pose
+    from algorithms.free_space import detect_free_space, posed_origins, vehicle_pose
 
     traj = cloud.trajectory
     assert traj is not None
@@ -153,7 +153,7 @@ def _free_space(
     position, heading = vehicle_pose(gps_time[index], traj)
     arms, arm_info = _lever_arms(cloud.xyz[index], gps_time[index], source, position, heading,
                                  params.lever_arms)
-    origin = scanner_origins(gps_time[index], source, traj, arms)
+    origin = posed_origins(position, heading, source, arms)
     placed = np.isin(source, list(arms))
     fs = detect_free_space(cloud.xyz[index], origin, radius=params.free_space_radius,
                            margin=params.free_space_margin, min_rays=params.free_space_min_rays,
