@@ -22,6 +22,11 @@ values (:func:`run_tile` with ``prepass_of``), :func:`prepare_stage` gathers the
 on disk, combines them over the whole file and writes each cell's part beside the cell's file,
 where :func:`run_tile` reads them for its region (``Cloud.known``).
 
+Such a round over the whole file runs the stages before it on every tile; their results for
+the tile's core are final, so the round keeps them (:func:`settles`, :class:`Settler`): later
+rounds and the tiles then run on the points those stages left, as after the streamed stages,
+and every stage runs once over the file whatever the number of rounds.
+
 The tiles are independent: :func:`process_tiled` runs them one after another here, the job
 service spreads them over its workers (:mod:`lidar_outliers.jobs.tiles`).
 """
@@ -345,7 +350,7 @@ def _check_prepared(tiles: TileSet, stages: list[StageModel]) -> None:
 def run_tile(
     tiles: TileSet, cell: tuple[int, int], params: PipelineParams, stages: list[StageModel],
     trajectory: np.ndarray | None = None, values_of: int | None = None,
-    prepass_of: int | None = None, dropped: np.ndarray | None = None,
+    prepass_of: int | None = None, dropped: np.ndarray | None = None, settle: bool = False,
 ) -> dict[str, Any]:
     """The pipeline's result for the points of ``cell``: the whole cloud's result for them.
 
@@ -363,9 +368,13 @@ def run_tile(
     ``index``, ``in_stage`` (earlier stages left the point) and ``value_<name>`` (zero where
     not in the stage).
 
-    ``dropped``: the sorted file indices of the points streamed stages flagged before
-    (:func:`dropped_points`): ``stages`` run on the other points, as the whole pipeline runs
-    its later stages, and the result holds those only (with no stages: as they are).
+    ``settle`` (with ``values_of`` or ``prepass_of``): the result also holds the final
+    ``flags``, scores and ``stages`` of the stages before that one (:func:`settles`), which
+    the round has run anyway.
+
+    ``dropped``: the sorted file indices of the points streamed or settled stages flagged
+    before (:func:`dropped_points`): ``stages`` run on the other points, as the whole pipeline
+    runs its later stages, and the result holds those only (with no stages: as they are).
     """
     if not stages and values_of is None:
         return _untouched(tiles, cell, params, dropped)
@@ -398,15 +407,23 @@ def run_tile(
             break
         halos = wider
     core = np.all(cells_of(cloud.xyz[:, :2], tiles.anchor, tiles.tile_size) == cell, axis=1)
+    if values_of is None and prepass_of is None:
+        assert result is not None
+        return _core_result(rec, core, result, halos)
+    out = _core_result(rec, core, result, halos) if settle and result is not None else {
+        "index": rec["index"][core], "halo": np.float64(sum(halos))}
     if values_of is not None:
-        return {"index": rec["index"][core], "halo": np.float64(sum(halos)),
-                "values": _stage_values(cloud, stages[-1], flags)[core]}
-    if prepass_of is not None:
-        values = _prepass_values(cloud, stages[-1], flags)
-        return {"index": rec["index"][core], "halo": np.float64(sum(halos)),
-                "in_stage": (flags == 0)[core],
-                **{f"value_{name}": v[core] for name, v in values.items()}}
-    assert result is not None
+        out["values"] = _stage_values(cloud, stages[-1], flags)[core]
+        return out
+    values = _prepass_values(cloud, stages[-1], flags)
+    out["in_stage"] = (flags == 0)[core]
+    out.update({f"value_{name}": v[core] for name, v in values.items()})
+    return out
+
+
+def _core_result(rec: np.ndarray, core: np.ndarray, result: Any, halos: list[float]
+                 ) -> dict[str, Any]:
+    """The pipeline's result for a tile's core points: flags, scores, classes, statistics."""
     out: dict[str, Any] = {"index": rec["index"][core], "flags": result.flags[core],
                            "halo": np.float64(sum(halos))}
     for name, score in result.scores.items():
@@ -417,6 +434,64 @@ def run_tile(
         {"info": s.get("info"), "critical_value": s.get("critical_value")}
         for s in result.statistics["stages"]]))
     return out
+
+
+def settles(stages: list[StageModel], step: int) -> bool:
+    """Whether the round over the whole file for stage ``step`` settles the stages before it.
+
+    That round runs them on every tile anyway, with their parameters fixed (``step`` is the
+    first stage still waiting), and their results for a tile's core are final: kept in file
+    order (:class:`Settler`), later rounds and the tiles run on the points they left instead
+    of running them again. Stages that classify points are not settled (their classes of the
+    points left are part of the result)."""
+    return step > 0 and all(get_detector(s.detector).kind == "outlier" for s in stages[:step])
+
+
+class Settler:
+    """Keeps the results of the stages a round settles in file-order arrays on disk, after
+    those of the stages already settled or streamed (``kept``; None: a new set of arrays
+    under ``folder``); their statistics come from the largest tile, as a tile run's do."""
+
+    def __init__(self, kept: Streamed | None, stages: list[StageModel], points: int,
+                 folder: Path) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        self.folder, self.stages, self.points = folder, stages, points
+        if kept is None:
+            flags = np.lib.format.open_memmap(folder / "flags.npy", mode="w+",
+                                              dtype=FLAGS_DTYPE, shape=(points,))
+            flags[:] = 0
+            kept = Streamed(flags, {})
+        self.kept = kept
+        self.new_scores: list[str] = []
+        for stage in stages:
+            name = stage.detector
+            score = np.lib.format.open_memmap(folder / f"score_{name}.npy", mode="w+",
+                                              dtype=np.float32, shape=(points,))
+            score[:] = np.nan
+            kept.scores[name] = score
+            self.new_scores.append(name)
+        self._largest = (-1, "[]")
+
+    def watch(self, results: Iterable[dict[str, Any]]) -> Iterable[dict[str, Any]]:
+        """The tiles' results as they come, their settled part written on the way."""
+        for res in results:
+            index = res["index"]
+            self.kept.flags[index] = res["flags"]
+            for name in self.new_scores:
+                self.kept.scores[name][index] = res[f"score_{name}"]
+            if index.size > self._largest[0]:
+                self._largest = (int(index.size), str(res["stages"]))
+            yield res
+
+    def finish(self) -> Streamed:
+        """The kept arrays with the settled stages' statistics appended."""
+        entries = json.loads(self._largest[1])
+        entries += [{}] * (len(self.stages) - len(entries))
+        self.kept.stages = [*self.kept.stages, *entries[:len(self.stages)]]
+        for arr in (self.kept.flags, *self.kept.scores.values()):
+            if isinstance(arr, np.memmap):
+                arr.flush()
+        return self.kept
 
 
 def dropped_points(flags: np.ndarray, step: int = 4_000_000) -> np.ndarray:
@@ -644,8 +719,8 @@ def merge(
 ) -> Merged:
     """Scatter the tiles' results into memory-mapped arrays in the input's order.
 
-    ``first``: the arrays of the streamed stages that ran before the tiles (the tiles then
-    hold the points those left, and the points they flagged have their results already)."""
+    ``first``: the arrays of the streamed or settled stages that ran before the tiles (the
+    tiles then hold the points those left; the points they flagged have their results)."""
     n = tiles.points
     folder.mkdir(parents=True, exist_ok=True)
 
@@ -809,22 +884,32 @@ def process_tiled(
         t_cut = time.perf_counter()
         first = run_streamed(in_path, stages[:lead], tiles.points, work / "streamed",
                              chunk_points=chunk_points, progress=progress) if lead else None
+        streamed_seconds = 0.0 if first is None else first.seconds
         dropped = None if first is None else dropped_points(first.flags)
-        rest = stages[lead:]
+        done, rest = stages[:lead], stages[lead:]  # run over the whole file / still to run
         estimated: dict[int, dict[str, Any]] = {}
         while (i := next_whole_file_step(rest, tiles.prepared)) is not None:
-            if pending_prepass(rest, tiles.prepared) == i:
-                values = (run_tile(tiles, cell, params, rest, trajectory, prepass_of=i,
-                                   dropped=dropped) for cell in sorted(tiles.cells))
+            settle = settles(rest, i)
+            prepass = pending_prepass(rest, tiles.prepared) == i
+            values: Iterable[dict[str, Any]] = (
+                run_tile(tiles, cell, params, rest, trajectory, dropped=dropped, settle=settle,
+                         **{"prepass_of" if prepass else "values_of": i})
+                for cell in sorted(tiles.cells))
+            settler = (Settler(first, rest[:i], tiles.points, work / f"settled_{len(done)}")
+                       if settle else None)
+            if settler is not None:
+                values = settler.watch(values)
+            if prepass:
                 info = prepare_stage(tiles, rest[i], values, work / "known")
-                estimated[lead + i] = {**estimated.get(lead + i, {}), **info}
-                continue
-            values = (run_tile(tiles, cell, params, rest, trajectory, values_of=i,
-                               dropped=dropped) for cell in sorted(tiles.cells))
-            pinned, info = pin_stage(tiles, rest[i], values, work / "values")
-            estimated[lead + i] = {**estimated.get(lead + i, {}), **info}
-            rest = [*rest[:i], pinned, *rest[i + 1:]]
-        stages = [*stages[:lead], *rest]
+            else:
+                pinned, info = pin_stage(tiles, rest[i], values, work / "values")
+                rest = [*rest[:i], pinned, *rest[i + 1:]]
+            estimated[len(done) + i] = {**estimated.get(len(done) + i, {}), **info}
+            if settler is not None:
+                first = settler.finish()
+                dropped = dropped_points(first.flags)
+                done, rest = [*done, *rest[:i]], rest[i:]
+        stages = [*done, *rest]
         results = []
         for k, cell in enumerate(sorted(tiles.cells)):
             path = work / "results" / result_name(cell)
@@ -843,9 +928,9 @@ def process_tiled(
                            progress_span=(0.85, 1.0))
         stats = tiled_statistics(merged, tiles, stages, params, facts.to_dict(), note, truth,
                                  estimated, given, None if first is None else first.stages)
-        if first is not None:
+        if lead:
             stats["streamed"] = {"stages": [s.detector for s in stages[:lead]],
-                                 "seconds": round(first.seconds, 4)}
+                                 "seconds": round(streamed_seconds, 4)}
         del merged, truth, first, dropped
     finally:
         shutil.rmtree(work, ignore_errors=True)

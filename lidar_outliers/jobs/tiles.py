@@ -52,6 +52,7 @@ from lidar_outliers.pipeline import check_noise_class, jsonable, resolve_stages
 from lidar_outliers.prepass import Streamed, leading_streamed, run_streamed
 from lidar_outliers.tiling import (
     MANIFEST,
+    Settler,
     TileError,
     TileSet,
     auto_tile_size,
@@ -68,6 +69,7 @@ from lidar_outliers.tiling import (
     result_name,
     run_tile,
     save_result,
+    settles,
     stage_halos,
     tiled_statistics,
 )
@@ -138,7 +140,8 @@ def _stream_leading(storage: Storage, job_id: str, source: Path, stages: list, p
     return entries
 
 
-def _streamed_array(storage: Storage, job_id: str, name: str, folder: Path) -> Any:
+def _streamed_array(storage: Storage, job_id: str, name: str, folder: Path,
+                    mode: str = "r") -> Any:
     """One array of the job's streamed stages, fetched into ``folder`` and mapped."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / name
@@ -146,19 +149,36 @@ def _streamed_array(storage: Storage, job_id: str, name: str, folder: Path) -> A
         storage.get_file(layout.tile_key(job_id, STREAMED + name), path)
     except ObjectMissing:
         raise TileError(f"the streamed stages' {name} is missing") from None
-    return np.load(path, mmap_mode="r")
+    return np.load(path, mmap_mode=mode)  # type: ignore[call-overload]
 
 
 def _streamed(storage: Storage, job_id: str, doc: dict[str, Any], stages: list,
-              folder: Path) -> Streamed | None:
-    """The file-order arrays of the job's streamed stages (None when it streamed none)."""
+              folder: Path, mode: str = "r") -> Streamed | None:
+    """The file-order arrays of the stages the job ran over the whole input before its tiles,
+    streamed or settled (None when there are none)."""
     if not doc.get("streamed"):
         return None
     lead = len(doc["streamed"])
     names = [s.detector for s in stages[:lead] if get_detector(s.detector).kind == "outlier"]
-    return Streamed(_streamed_array(storage, job_id, "flags.npy", folder),
+    return Streamed(_streamed_array(storage, job_id, "flags.npy", folder, mode),
                     {n: _streamed_array(storage, job_id, f"score_{n}.npy", folder)
                      for n in names}, list(doc["streamed"]))
+
+
+def _put_settled(storage: Storage, job_id: str, settler: Settler, doc: dict[str, Any]) -> None:
+    """Put the settled stages' arrays (the flags of every stage so far, which points they
+    dropped, the new stages' scores) into the job's storage and their statistics into the
+    manifest ``doc``; a round delivered again writes the same values."""
+    kept = settler.finish()
+    folder = settler.folder
+    np.save(folder / "dropped.npy", dropped_points(kept.flags))
+    flags = folder / "flags.npy"
+    if not flags.exists():  # the streamed stages' flags, updated in place
+        np.save(flags, kept.flags)
+    names = ["flags.npy", "dropped.npy", *(f"score_{n}.npy" for n in settler.new_scores)]
+    for name in names:
+        storage.put_file(layout.tile_key(job_id, STREAMED + name), folder / name, move=True)
+    doc["streamed"] = jsonable(kept.stages)
 
 
 def _manifest(storage: Storage, job_id: str, folder: Path) -> tuple[TileSet, dict[str, Any]]:
@@ -229,6 +249,11 @@ def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: st
         if next_whole_file_step(stages, tiles.prepared) != stage or (
                 round_ is not None and round_ != current):
             return False
+        lead = len(doc.get("streamed") or [])
+        settler = None
+        if settles(stages[lead:], stage - lead):
+            kept = _streamed(storage, job_id, doc, stages, scratch / "streamed", mode="r+")
+            settler = Settler(kept, stages[lead:stage], tiles.points, scratch / "settled")
 
         def values() -> Any:
             for cell in sorted(tiles.cells):
@@ -240,16 +265,19 @@ def pin_job_stage(settings: Settings, store: Store, storage: Storage, job_id: st
                 yield load_result(path)
                 path.unlink()
 
+        results = values() if settler is None else settler.watch(values())
         if pending_prepass(stages, tiles.prepared) == stage:
             info = prepare_stage(
-                tiles, stages[stage], values(), scratch / "known",
+                tiles, stages[stage], results, scratch / "known",
                 put=lambda path: storage.put_file(layout.tile_key(job_id, path.name), path,
                                                   move=True))
             doc["prepared"] = list(tiles.prepared)
         else:
-            pinned, info = pin_stage(tiles, stages[stage], values(), scratch / "values")
+            pinned, info = pin_stage(tiles, stages[stage], results, scratch / "values")
             doc["stages"][stage] = pinned.model_dump(mode="json")
         doc["estimated"][str(stage)] = {**doc["estimated"].get(str(stage), {}), **info}
+        if settler is not None:
+            _put_settled(storage, job_id, settler, doc)
         doc["rounds"] = current + 1
         path = scratch / MANIFEST
         path.write_text(json.dumps(doc))
@@ -291,7 +319,8 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
         own = None if values_of is None else values_of - lead  # among the tiled stages
         result = run_tile(tiles, tuple(cell), params, stages[lead:],
                           values_of=None if prepass else own,
-                          prepass_of=own if prepass else None, dropped=dropped)
+                          prepass_of=own if prepass else None, dropped=dropped,
+                          settle=own is not None and settles(stages[lead:], own))
         path = scratch / (result_name(tuple(cell)) if values_of is None
                           else values_name(values_of, tuple(cell), current))
         save_result(path, result)
@@ -370,8 +399,8 @@ def _merge(storage: Storage, job_id: str, job: Any, scratch: Path, progress: Pro
     stats = tiled_statistics(merged, tiles, stages, params, facts, doc["note"], truth,
                              estimated, given, None if first is None else first.stages)
     stats["mode"] = "tiled over workers"
-    if first is not None:
-        stats["streamed"] = {"stages": [s.detector for s in stages[:len(first.stages)]]}
+    if lead := leading_streamed(stages):
+        stats["streamed"] = {"stages": [s.detector for s in stages[:lead]]}
     del merged, truth, first
     stats = finish_statistics(stats, out, job.laz, None, None)
     statistics = scratch / "statistics.json"

@@ -223,7 +223,9 @@ STREET_TILE = 1.5  # metres: the box is 4 m long, the canopy 15 m, the one-pass 
     [STREET_TRANSIENT],
     [STREET_TRANSIENT, {"detector": "height_field", "sigma": 0.01, "low": False}],
     [{"detector": "height_field", "low": False}, STREET_TRANSIENT],
-], ids=["transient", "transient, then height_field", "height_field sigma auto, then transient"])
+    [STREET_TRANSIENT, {"detector": "height_field"}],
+], ids=["transient", "transient, then height_field", "height_field sigma auto, then transient",
+        "transient, then height_field estimated"])
 def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
     """Persistence and the scan-line neighbours come from passes over the whole file, the
     clusters from the tile and max_extent + radius around it: the whole cloud's result."""
