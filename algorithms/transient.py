@@ -423,9 +423,59 @@ def detect_transient_given(
     persistent = np.asarray(persistent, dtype=bool)
     info = {"k": int(k), "radius": float(radius), "max_extent": float(max_extent),
             "points": len(arr)}
+    read = steps_3_4_points(arr, persistent, radius)
+    local = read if read.size < len(arr) else None
+    if local is not None:  # the rest are persistent and out of reach: their score is 0
+        arr, persistent, sides = arr[read], persistent[read], _sides_among(sides, read)
     single = np.flatnonzero(~persistent)
     idx, near = neighbour_table(arr, k, radius, rows=single)
     touches = np.zeros(len(arr), dtype=bool)
     touches[single] = touching_persistent(idx, near, persistent)
     clusters = floating_clusters(arr, persistent, touches, radius, sides, max_extent)
+    if local is not None:
+        clusters = _spread(clusters, local, len(xyz))
+        persistent = _persistent_at(persistent, local, len(xyz))
     return _result(persistent, clusters, info)
+
+
+def steps_3_4_points(xyz: np.ndarray, persistent: np.ndarray, radius: float) -> np.ndarray:
+    """The sorted indices of the points steps 3-4 read: the single-epoch points and every
+    point within ``radius`` of one in plan (their neighbours, attachments and cover). A
+    persistent point further from every single-epoch point is read by nothing, so a tile whose
+    region reaches ``max_extent`` beyond its core computes on these only."""
+    from scipy.spatial import cKDTree
+
+    single = ~np.asarray(persistent, dtype=bool)
+    if single.all() or not single.any():
+        return np.flatnonzero(single)
+    reach = radius * (1.0 + 1e-9)  # a superset: a point at exactly radius is kept
+    d, _ = cKDTree(xyz[single, :2]).query(xyz[:, :2], k=1, distance_upper_bound=reach)
+    return np.flatnonzero(single | np.isfinite(d))
+
+
+def _sides_among(sides: tuple[ScanLineSide, ...], read: np.ndarray) -> tuple[ScanLineSide, ...]:
+    """The scan-line sides of the points ``read``, rows renumbered among them (-1: a row not
+    read, which is persistent and outside every cluster, as before)."""
+    position = np.full(len(sides[0].row), -1, dtype=np.int64)
+    position[read] = np.arange(read.size)
+    return tuple(ScanLineSide(s.present[read],
+                              np.where(s.row[read] >= 0, position[np.maximum(s.row[read], 0)],
+                                       -1),
+                              s.persistent[read]) for s in sides)
+
+
+def _spread(clusters: Clusters, read: np.ndarray, n: int) -> Clusters:
+    """Clusters of the points ``read`` as (n,) arrays (False elsewhere)."""
+    def full(part: np.ndarray) -> np.ndarray:
+        out = np.zeros(n, dtype=bool)
+        out[read] = part
+        return out
+
+    return Clusters(full(clusters.floating), full(clusters.flagged), full(clusters.wide))
+
+
+def _persistent_at(part: np.ndarray, read: np.ndarray, n: int) -> np.ndarray:
+    """Persistence of the points ``read`` as an (n,) array (the others are persistent)."""
+    out = np.ones(n, dtype=bool)
+    out[read] = part
+    return out

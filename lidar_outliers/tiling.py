@@ -401,8 +401,8 @@ def run_tile(
         cloud.known = region_known(tiles, rec)
         result = run_pipeline(cloud, tile_params) if run else None
         flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
-        wider = None if everything else _reach_violations(
-            cloud, stages, halos, flags, outside_distance(cloud.xyz[:, :2], tiles, cell))
+        outside = outside_distance(cloud.xyz[:, :2], tiles, cell)
+        wider = None if everything else _reach_violations(cloud, stages, halos, flags, outside)
         if wider is None:
             break
         halos = wider
@@ -412,10 +412,13 @@ def run_tile(
         return _core_result(rec, core, result, halos)
     out = _core_result(rec, core, result, halos) if settle and result is not None else {
         "index": rec["index"][core], "halo": np.float64(sum(halos))}
+    # the values of the core's points read no further than the last stage's halo (its reach
+    # was checked): the earlier stages' wider halos are not computed on again
+    use = (flags == 0) & (outside <= halos[-1])
     if values_of is not None:
-        out["values"] = _stage_values(cloud, stages[-1], flags)[core]
+        out["values"] = _stage_values(cloud, stages[-1], use)[core]
         return out
-    values = _prepass_values(cloud, stages[-1], flags)
+    values = _prepass_values(cloud, stages[-1], use)
     out["in_stage"] = (flags == 0)[core]
     out.update({f"value_{name}": v[core] for name, v in values.items()})
     return out
@@ -522,23 +525,24 @@ def _untouched(tiles: TileSet, cell: tuple[int, int], params: PipelineParams,
     return out
 
 
-def _stage_values(cloud: Cloud, stage: StageModel, flags: np.ndarray) -> np.ndarray:
-    """(n,) the values a stage estimates from, on the points earlier stages left (NaN else)."""
+def _stage_values(cloud: Cloud, stage: StageModel, use: np.ndarray) -> np.ndarray:
+    """(n,) the values a stage estimates from, computed on the points ``use`` (those earlier
+    stages left, near enough; NaN else)."""
     estimate = get_detector(stage.detector).estimate
     assert estimate is not None
     out = np.full(len(cloud), np.nan)
-    index = np.flatnonzero(flags == 0)
+    index = np.flatnonzero(use)
     if index.size:
         sub = cloud if index.size == len(cloud) else cloud.subset(index)
         out[index] = estimate.values(sub, stage.parameters())
     return out
 
 
-def _prepass_values(cloud: Cloud, stage: StageModel, flags: np.ndarray) -> dict[str, np.ndarray]:
-    """(n,) arrays of a stage's pre-pass values on the points earlier stages left (0 else)."""
+def _prepass_values(cloud: Cloud, stage: StageModel, use: np.ndarray) -> dict[str, np.ndarray]:
+    """(n,) arrays of a stage's pre-pass values computed on the points ``use`` (0 else)."""
     prepass = get_detector(stage.detector).prepass
     assert prepass is not None
-    index = np.flatnonzero(flags == 0)
+    index = np.flatnonzero(use)
     sub = cloud if index.size == len(cloud) else cloud.subset(index)
     out = {}
     for name, values in prepass.values(sub, stage.parameters()).items():

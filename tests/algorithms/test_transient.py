@@ -14,6 +14,7 @@ from algorithms.transient import (
     persistent_points,
     scan_line_neighbours,
     scan_line_sides,
+    steps_3_4_points,
     stream_scan_lines,
     touching_persistent,
 )
@@ -266,3 +267,16 @@ def test_points_within_max_extent_and_radius_decide_as_the_whole_cloud(x0):
     part = detect_transient_given(xyz[rows], persistent, sides, k=k, radius=radius,
                                   max_extent=max_extent)
     np.testing.assert_array_equal(part.score[core], whole.score[rows][core])
+
+
+def test_steps_3_4_read_the_single_epoch_points_and_those_within_radius_in_plan():
+    """The points a tile's run computes on, against every pairwise distance."""
+    rng = np.random.default_rng(9)
+    xyz = rng.uniform(0, 5, (600, 3))
+    persistent = rng.random(600) > 0.05
+    radius = 0.3
+    d = np.linalg.norm(xyz[:, None, :2] - xyz[None, ~persistent, :2], axis=2)
+    expected = np.flatnonzero(~persistent | (d <= radius).any(axis=1))
+    got = steps_3_4_points(xyz, persistent, radius)
+    np.testing.assert_array_equal(got, expected)
+    assert 0 < got.size < len(xyz)
