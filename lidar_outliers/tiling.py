@@ -326,10 +326,14 @@ def region_known(tiles: TileSet, rec: np.ndarray) -> dict[str, np.ndarray] | Non
     """The pre-pass facts of a region's points (``rec``), in its order, per detector."""
     if not tiles.prepared or len(rec) == 0:
         return None
-    ij = np.unique(cells_of(rec["xyz"][:, :2], tiles.anchor, tiles.tile_size), axis=0)
+    ij = cells_of(rec["xyz"][:, :2], tiles.anchor, tiles.tile_size)
+    lo = ij.min(axis=0)
+    span = ij.max(axis=0) - lo + 1
+    keys = np.unique((ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1]))  # 1-D: fast to sort
+    cells = [(int(lo[0] + key // span[1]), int(lo[1] + key % span[1])) for key in keys]
     known = {}
     for detector in tiles.prepared:
-        parts = np.concatenate([read_known(tiles, detector, (int(c), int(r))) for c, r in ij])
+        parts = np.concatenate([read_known(tiles, detector, cell) for cell in cells])
         order = np.argsort(parts["index"], kind="stable")
         pos = order[np.minimum(np.searchsorted(parts["index"], rec["index"], sorter=order),
                                len(order) - 1)]
