@@ -33,20 +33,16 @@ Score per point: 0 persistent, 1 single-epoch in an attached, wide or unrevisite
 single-epoch in a floating, revisited cluster (flagged; critical value 1.5). Pure numpy/scipy
 (cKDTree, sparse connected components).
 
-Tile by tile (:func:`detect_transient_given`), with the whole cloud's result: step 1 depends
-only on the points within ``radius``, so a pass over tiles with that much around them gives
-every point's persistence; the scan-line neighbours (the returns fired just before and after)
-may lie anywhere, but step 4 reads of them only whether they are persistent, which a pass over
-the whole file in time order gives (:func:`scan_line_neighbours` on every point's time and
-scanner). With both given, a tile run needs the points within ``H = max_extent + radius`` (XY)
-of its core. Proof that it then decides every core point's cluster as the whole cloud does:
-let C be a core point's cluster and C' its cluster among the tile's points (C' within C). If
-C' is wider than ``max_extent`` so is C: both are static. Else every point of C' lies within
-``max_extent`` of the core point, and any point linked to one of them (3D distance <=
-``radius``, so also in plan) within ``H`` of the core, inside the tile: nothing of C is left
-out, C' = C. The attachment (neighbours within ``radius`` of C) and the cover (persistent points
-within ``radius`` in plan of C) lie within ``H`` too, and a scan-line neighbour outside the tile
-is outside C.
+Over a file of any size (:func:`point_facts`, :func:`cluster_decisions`), with the whole
+cloud's result and no halo wider than ``2 * radius``: step 1 and what steps 3-4 read around a
+point (a persistent neighbour within ``radius``, a persistent point within ``radius`` in plan)
+depend only on the points within ``2 * radius``, so a pass over tiles with that much around
+them gives them for every point; the scan-line neighbours (the returns fired just before and
+after) may lie anywhere, a pass over the whole file in time order gives them
+(:func:`scan_line_neighbours` on every point's time and scanner); the clusters are the
+connected components of the single-epoch points, found block by block in plan and joined
+through the points the blocks share (:func:`linked_components`), and every decision of steps
+3-4 is a count, a bounding box or an "any" over a cluster's points, summed over the file.
 """
 
 from __future__ import annotations
@@ -377,8 +373,8 @@ def detect_transient(
 
     xyz (n, 3) metres, gps_time (n,) seconds (finite), source (n,) the scanner of each return
     (point_source_id; None: one scanner). ``centre``: move xyz to its mean first (False: xyz is
-    in a local frame already, and a tiled run, :func:`detect_transient_given`, computes on the
-    same numbers). Returns a DetectorResult with score (n,) in {0, 1, 2}, flagged = score ==
+    in a local frame already, and a tiled run, :func:`point_facts`, computes on the same
+    numbers). Returns a DetectorResult with score (n,) in {0, 1, 2}, flagged = score ==
     2, critical_value 1.5.
     """
     arr = _checked(xyz, "n", {"gps_time": gps_time})
@@ -404,78 +400,100 @@ def detect_transient(
     return _result(persistent, clusters, info)
 
 
-def detect_transient_given(
-    xyz: np.ndarray,
-    persistent: np.ndarray,
-    sides: tuple[ScanLineSide, ScanLineSide],
-    *,
-    k: int = 24,
-    radius: float = 0.2,
-    max_extent: float = 40.0,
-) -> DetectorResult:
-    """Steps 3-4 on a tile's points with steps 1-2 taken from the whole file (module
-    docstring): ``persistent`` (n,) bool and the scan-line ``sides`` of each point. xyz (n, 3)
-    in the frame the whole cloud's run used (no centring). Exact for the points within
-    ``max_extent + radius`` (XY) of the tile's edge inward; returns as
-    :func:`detect_transient`."""
-    arr = _checked(xyz, "n", {"persistent": persistent})
-    TransientParameters(k=k, radius=radius, max_extent=max_extent)
-    persistent = np.asarray(persistent, dtype=bool)
-    info = {"k": int(k), "radius": float(radius), "max_extent": float(max_extent),
-            "points": len(arr)}
-    read = steps_3_4_points(arr, persistent, radius)
-    local = read if read.size < len(arr) else None
-    if local is not None:  # the rest are persistent and out of reach: their score is 0
-        arr, persistent, sides = arr[read], persistent[read], _sides_among(sides, read)
-    single = np.flatnonzero(~persistent)
-    idx, near = neighbour_table(arr, k, radius, rows=single)
-    touches = np.zeros(len(arr), dtype=bool)
-    touches[single] = touching_persistent(idx, near, persistent)
-    clusters = floating_clusters(arr, persistent, touches, radius, sides, max_extent)
-    if local is not None:
-        clusters = _spread(clusters, local, len(xyz))
-        persistent = _persistent_at(persistent, local, len(xyz))
-    return _result(persistent, clusters, info)
+# --------------------------------------------------------------------------- over a whole file
 
 
-def steps_3_4_points(xyz: np.ndarray, persistent: np.ndarray, radius: float) -> np.ndarray:
-    """The sorted indices of the points steps 3-4 read: the single-epoch points and every
-    point within ``radius`` of one in plan (their neighbours, attachments and cover). A
-    persistent point further from every single-epoch point is read by nothing, so a tile whose
-    region reaches ``max_extent`` beyond its core computes on these only."""
+def point_facts(xyz: np.ndarray, gps_time: np.ndarray, *, k: int, radius: float,
+                min_dt: float) -> dict[str, np.ndarray]:
+    """Steps 1-2 and what step 3-4 read of each point's surroundings, (n,) bool each:
+    ``persistent``; for single-epoch points ``touches`` (a persistent point among its
+    neighbours within ``radius``, :func:`touching_persistent`) and ``covered`` (a persistent
+    point within ``radius`` in plan, as :func:`revisited_clusters` counts). Exact for the points
+    with every point within ``2 * radius`` of them at hand (a tile's region), in the frame and
+    order the whole cloud's run uses."""
     from scipy.spatial import cKDTree
 
-    single = ~np.asarray(persistent, dtype=bool)
-    if single.all() or not single.any():
-        return np.flatnonzero(single)
-    reach = radius * (1.0 + 1e-9)  # a superset: a point at exactly radius is kept
-    d, _ = cKDTree(xyz[single, :2]).query(xyz[:, :2], k=1, distance_upper_bound=reach)
-    return np.flatnonzero(single | np.isfinite(d))
+    arr = np.asarray(xyz, dtype=np.float64)
+    n = len(arr)
+    touches, covered = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+    if n < 2:
+        return {"persistent": np.zeros(n, dtype=bool), "touches": touches, "covered": covered}
+    idx, near = neighbour_table(arr, k, radius)
+    persistent = persistent_points(np.asarray(gps_time, dtype=np.float64), idx, near, min_dt)
+    single = np.flatnonzero(~persistent)
+    touches[single] = touching_persistent(idx[single], near[single], persistent)
+    seen = np.flatnonzero(persistent)
+    if seen.size and single.size:
+        covered[single] = cKDTree(arr[seen, :2]).query_ball_point(
+            arr[single, :2], radius, return_length=True) > 0
+    return {"persistent": persistent, "touches": touches, "covered": covered}
 
 
-def _sides_among(sides: tuple[ScanLineSide, ...], read: np.ndarray) -> tuple[ScanLineSide, ...]:
-    """The scan-line sides of the points ``read``, rows renumbered among them (-1: a row not
-    read, which is persistent and outside every cluster, as before)."""
-    position = np.full(len(sides[0].row), -1, dtype=np.int64)
-    position[read] = np.arange(read.size)
-    return tuple(ScanLineSide(s.present[read],
-                              np.where(s.row[read] >= 0, position[np.maximum(s.row[read], 0)],
-                                       -1),
-                              s.persistent[read]) for s in sides)
+#: Single-epoch points a block of :func:`linked_components` aims at.
+BLOCK_POINTS = 200_000
 
 
-def _spread(clusters: Clusters, read: np.ndarray, n: int) -> Clusters:
-    """Clusters of the points ``read`` as (n,) arrays (False elsewhere)."""
-    def full(part: np.ndarray) -> np.ndarray:
-        out = np.zeros(n, dtype=bool)
-        out[read] = part
-        return out
+def linked_components(xyz: np.ndarray, radius: float, block_points: int = BLOCK_POINTS
+                      ) -> tuple[int, np.ndarray]:
+    """:func:`cluster_labels` of every point of ``xyz`` (links of at most ``radius``), found
+    block by block in plan so that memory follows a block: each block's points and those within
+    ``radius`` of it are joined locally, and the blocks' components are joined through the
+    points they share. Two linked points lie in the block of either with its margin, so the
+    components are those of the whole set (the labels may be numbered otherwise)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
-    return Clusters(full(clusters.floating), full(clusters.flagged), full(clusters.wide))
+    m = len(xyz)
+    if m == 0:
+        return 0, np.zeros(0, dtype=np.int32)
+    xy = xyz[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    area = max(float(np.prod(hi - lo)), 1e-12)
+    size = max(4.0 * radius, float(np.sqrt(area * block_points / m)))
+    cell = np.floor((xy - lo) / size).astype(np.int64)
+    columns = int(cell[:, 1].max()) + 1
+    key = cell[:, 0] * columns + cell[:, 1]
+    order = np.argsort(key, kind="stable")
+    bounds = np.searchsorted(key[order], np.unique(key), side="left")
+    ends = np.r_[bounds[1:], m]
+    sources, targets = [], []
+    for a, b in zip(bounds, ends, strict=True):
+        members = order[a:b]
+        c = cell[members[0]]
+        box_lo, box_hi = lo + c * size - radius, lo + (c + 1) * size + radius
+        around = np.flatnonzero(np.all((xy >= box_lo) & (xy <= box_hi), axis=1))
+        _, local = cluster_labels(xyz, around, radius)
+        first = np.full(int(local.max()) + 1, -1, dtype=np.int64)
+        first[local[::-1]] = around[::-1]  # each local component's first point
+        sources.append(around)
+        targets.append(first[local])
+    src, dst = np.concatenate(sources), np.concatenate(targets)
+    graph = coo_matrix((np.ones(src.size, dtype=np.int8), (src, dst)), shape=(m, m))
+    return connected_components(graph, directed=False)
 
 
-def _persistent_at(part: np.ndarray, read: np.ndarray, n: int) -> np.ndarray:
-    """Persistence of the points ``read`` as an (n,) array (the others are persistent)."""
-    out = np.ones(n, dtype=bool)
-    out[read] = part
-    return out
+def cluster_decisions(xyz: np.ndarray, facts: dict[str, np.ndarray], sides: tuple[
+        ScanLineSide, ...], *, radius: float, max_extent: float,
+        block_points: int = BLOCK_POINTS) -> tuple[Clusters, int]:
+    """Steps 3-4 on the single-epoch points of a whole file, from their :func:`point_facts`
+    (``touches``, ``covered``) and scan-line ``sides`` (``row``: the neighbour's position among
+    these points, -1 when it is not one of them): :class:`Clusters` over them, as
+    :func:`floating_clusters` decides them on the whole cloud, and the number of clusters."""
+    n_comp, label = linked_components(xyz, radius, block_points)
+    attached = np.zeros(n_comp, dtype=bool)
+    attached[label[facts["touches"]]] = True
+    too_wide = cluster_widths(xyz[:, :2], label, n_comp) > max_extent
+    free = ~attached & ~too_wide
+    flanks, seen_flanks = np.zeros(n_comp), np.zeros(n_comp)
+    for side in sides:
+        j = side.row
+        inside = (j >= 0) & (label[np.maximum(j, 0)] == label)
+        outside = side.present & ~inside
+        np.add.at(flanks, label[outside], 1.0)
+        np.add.at(seen_flanks, label[outside], side.persistent[outside])
+    beside = (flanks > 0) & (2.0 * seen_flanks >= flanks)
+    size = np.bincount(label, minlength=n_comp)
+    under = 2.0 * np.bincount(label, weights=facts["covered"], minlength=n_comp) >= size
+    revisited = beside & under
+    floating = free[label]
+    return Clusters(floating, (free & revisited)[label], too_wide[label]), n_comp

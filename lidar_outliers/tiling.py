@@ -594,10 +594,14 @@ def prepare_stage(
             columns[key[6:]][index] = res[key]
     columns["gps_time"] = mapped("gps_time", np.float64)
     columns["point_source_id"] = mapped("point_source_id", np.uint16)
+    for axis in "xyz":
+        columns[axis] = mapped(axis, np.float64)
     for cell in tiles.cells:
         rec = read_cell(tiles, cell)
         columns["gps_time"][rec["index"]] = rec["gps_time"]
         columns["point_source_id"][rec["index"]] = rec["point_source_id"]
+        for k, axis in enumerate("xyz"):
+            columns[axis][rec["index"]] = rec["xyz"][:, k]
     out = mapped("known", spec.prepass.dtype)
     info = spec.prepass.combine(stage.parameters(), columns, out)
     with_index = known_dtype(stage.detector)

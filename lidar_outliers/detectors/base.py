@@ -88,17 +88,18 @@ class Estimate:
 @dataclass(frozen=True)
 class Prepass:
     """Per-point facts a detector reads from the whole file, gathered before its tiles run
-    (``transient``: which points are persistent, and the scan-line neighbours, which may lie
-    anywhere).
+    (``transient``: which points are persistent, the scan-line neighbours, which may lie
+    anywhere, and the clusters of the single-epoch points, which may span any number of tiles).
 
     ``halo(params)``: XY metres around a tile that ``values`` needs to be exact for the tile's
     points. ``values(cloud, params)``: per-point arrays by name, (n,) each, on the stage's
     input of a tile's region. ``combine(params, columns, out)``: fills ``out`` ((n,) records of
     ``dtype`` in file order) from ``columns``: every point's ``values`` in file order, plus
-    ``in_stage`` (bool: the point reached the stage), ``gps_time`` and ``point_source_id``, as
-    (n,) arrays on disk; returns the statistics' info on it. The detector's ``run`` then finds,
-    on a tile, ``cloud.known[name]``: its points' records of ``out`` and their ``index`` in the
-    file. A tiled run gathers the values tile by tile, combines, then runs the tiles with the
+    ``in_stage`` (bool: the point reached the stage), ``gps_time``, ``point_source_id`` and
+    ``x``, ``y``, ``z`` (the local frame's coordinates), as (n,) arrays on disk; returns the
+    statistics' info on it. The detector's ``run`` then finds, on a tile,
+    ``cloud.known[name]``: its points' records of ``out`` and their ``index`` in the file. A
+    tiled run gathers the values tile by tile, combines, then runs the tiles with the
     detector's ``halo`` (:mod:`lidar_outliers.tiling`).
     """
 

@@ -2,11 +2,12 @@
 :mod:`algorithms.transient`); with a trajectory also points that other beams saw through
 (free-space evidence, :mod:`algorithms.free_space`), ORed into one flag.
 
-Without a trajectory it runs tile by tile: a pre-pass over tiles (halo ``radius``) finds the
-persistent points, one pass over the whole file in time order the scan-line neighbours
-(:func:`combine_scan_lines`), and the tiles (halo ``max_extent + radius``) read both
-(:func:`algorithms.transient.detect_transient_given`). With a trajectory the beams cross the
-whole cloud, so it runs whole.
+Without a trajectory it runs tile by tile: a pre-pass over tiles (halo ``2 * radius``) finds
+each point's persistence and what the cluster decisions read around it
+(:func:`~algorithms.transient.point_facts`), one pass over the whole file the scan-line
+neighbours and the clusters of the single-epoch points with their decisions
+(:func:`combine_clusters`), and the tiles read each point's score (no halo). With a trajectory
+the beams cross the whole cloud, so it runs whole.
 """
 
 from __future__ import annotations
@@ -23,10 +24,11 @@ from lidar_outliers.errors import ParameterError
 
 #: Points per step of the passes over the whole file.
 STREAM_POINTS = 4_000_000
-#: What a tile reads of the whole file per point: persistent, and its scan-line neighbours
-#: before and after (file index, -1 none) and whether they are persistent.
+#: What the pass over the whole file finds per point: persistent, its scan-line neighbours
+#: before and after (file index, -1 none) and whether they are persistent, and its score (0
+#: persistent, 1 single-epoch, 2 flagged), which is what a tile reads.
 KNOWN_DTYPE = np.dtype([("persistent", "?"), ("before", "<i8"), ("after", "<i8"),
-                        ("before_persistent", "?"), ("after_persistent", "?")])
+                        ("before_persistent", "?"), ("after_persistent", "?"), ("score", "u1")])
 
 
 def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
@@ -64,34 +66,27 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
 
 
 def _run_given(cloud: Cloud, known: np.ndarray, params: TransientParameters) -> DetectorResult:
-    """A tile's run with persistence and scan-line neighbours from the whole file."""
-    from algorithms.transient import detect_transient_given
-
-    index = known["index"]  # ascending: a tile's points are in file order
-    sides = []
-    for name in ("before", "after"):
-        j = known[name]
-        row = np.minimum(np.searchsorted(index, j), max(len(index) - 1, 0))
-        here = (j >= 0) & (index[row] == j) if len(index) else np.zeros(0, bool)
-        sides.append(ScanLineSide(j >= 0, np.where(here, row, -1),
-                                  np.asarray(known[f"{name}_persistent"], dtype=bool)))
-    result = detect_transient_given(cloud.xyz, known["persistent"], (sides[0], sides[1]),
-                                    k=params.k, radius=params.radius,
-                                    max_extent=params.max_extent)
-    result.info.update(min_dt=params.min_dt, free_space="no trajectory file given")
-    return result
+    """A tile's run: each point's score from the pass over the whole file."""
+    score = np.asarray(known["score"], dtype=np.float64)
+    flagged = score == 2.0
+    info = {"k": params.k, "radius": params.radius, "min_dt": params.min_dt,
+            "max_extent": params.max_extent, "points": len(score),
+            "points_tested": len(score), "points_flagged": int(flagged.sum()),
+            "free_space": "no trajectory file given"}
+    return DetectorResult(score=score, flagged=flagged, critical_value=1.5, info=info)
 
 
 def persistent_values(cloud: Cloud, params: TransientParameters) -> dict[str, np.ndarray]:
-    """Step 1 on a tile's region: ``persistent`` (n,) bool, exact for the points with every
-    point within ``radius`` at hand."""
-    from algorithms.transient import neighbour_table, persistent_points
+    """Step 1 and what steps 3-4 read around each point of a tile's region
+    (:func:`~algorithms.transient.point_facts`), exact for the points with every point within
+    ``2 * radius`` at hand."""
+    from algorithms.transient import point_facts
 
     gps_time = cloud.require_gps_time("transient")
     if not (np.all(np.isfinite(cloud.xyz)) and np.all(np.isfinite(gps_time))):
         raise ParameterError("xyz or gps_time holds NaN or infinite values")
-    idx, near = neighbour_table(cloud.xyz, params.k, params.radius)
-    return {"persistent": persistent_points(gps_time, idx, near, params.min_dt)}
+    return point_facts(cloud.xyz, gps_time, k=params.k, radius=params.radius,
+                       min_dt=params.min_dt)
 
 
 def combine_scan_lines(params: TransientParameters, columns: dict[str, np.ndarray],
@@ -128,6 +123,41 @@ def combine_scan_lines(params: TransientParameters, columns: dict[str, np.ndarra
     return {"scan_lines": "in file order (time order per scanner)" if streamed else
             "sorted by scanner and time over the whole file",
             "scan_line_points": int(np.count_nonzero(use))}
+
+
+def combine_clusters(params: TransientParameters, columns: dict[str, np.ndarray],
+                     out: np.ndarray) -> dict[str, Any]:
+    """The scan-line neighbours (:func:`combine_scan_lines`), then steps 3-4 over the whole
+    file's single-epoch points (:func:`~algorithms.transient.cluster_decisions`) into each
+    point's ``score``. Memory: the single-epoch points' coordinates and facts (about 100 bytes
+    each) besides what the scan lines take."""
+    from algorithms.transient import cluster_decisions
+
+    info = combine_scan_lines(params, columns, out)
+    use, persistent = columns["in_stage"], columns["persistent"]
+    single = np.concatenate([s + np.flatnonzero(np.asarray(use[s:s + STREAM_POINTS])
+                                                & ~np.asarray(persistent[s:s + STREAM_POINTS]))
+                             for s in range(0, len(out), STREAM_POINTS)] or [np.zeros(0, int)])
+    xyz = np.column_stack([np.asarray(columns[c][single]) for c in ("x", "y", "z")])
+    facts = {name: np.asarray(columns[name][single], dtype=bool) for name in ("touches",
+                                                                               "covered")}
+    sides = []
+    for name in ("before", "after"):
+        j = np.asarray(out[name][single])
+        pos = np.minimum(np.searchsorted(single, j), max(single.size - 1, 0))
+        mine = (j >= 0) & (single[pos] == j) if single.size else np.zeros(0, bool)
+        sides.append(ScanLineSide(j >= 0, np.where(mine, pos, -1),
+                                  np.asarray(out[f"{name}_persistent"][single], dtype=bool)))
+    clusters, n_comp = cluster_decisions(xyz, facts, tuple(sides), radius=params.radius,
+                                         max_extent=params.max_extent)
+    for s in range(0, len(out), STREAM_POINTS):
+        out["score"][s:s + STREAM_POINTS] = 0
+    out["score"][single] = np.where(clusters.flagged, 2, 1).astype(np.uint8)
+    info.update(single_epoch=int(single.size), single_epoch_clusters=n_comp,
+                points_flagged=int(clusters.flagged.sum()),
+                floating_not_revisited=int((clusters.floating & ~clusters.flagged).sum()),
+                single_epoch_wide=int(clusters.wide.sum()))
+    return info
 
 
 def _free_space(
@@ -205,11 +235,10 @@ DETECTOR = Detector(
              "again (moving objects)."),
     flag_bit=128,
     needs=("gps_time",),
-    # with persistence and the scan-line neighbours from the whole file (the pre-pass), a
-    # cluster no wider than max_extent lies within max_extent of any of its points, and what it
-    # touches within radius more (algorithms.transient's docstring has the proof)
-    halo=lambda params: params.max_extent + params.radius,
-    prepass=Prepass(halo=lambda params: params.radius, values=persistent_values,
-                    dtype=KNOWN_DTYPE, combine=combine_scan_lines),
+    # the pass over the whole file decides every point (its clusters joined over the file): a
+    # tile reads its points' scores only
+    halo=lambda params: 0.0,
+    prepass=Prepass(halo=lambda params: 2.0 * params.radius, values=persistent_values,
+                    dtype=KNOWN_DTYPE, combine=combine_clusters),
     uses_trajectory=True,
 )

@@ -7,14 +7,16 @@ import pytest
 
 from algorithms.errors import ParameterError
 from algorithms.transient import (
+    cluster_decisions,
+    cluster_labels,
     detect_transient,
-    detect_transient_given,
     floating_clusters,
+    linked_components,
     neighbour_table,
     persistent_points,
+    point_facts,
     scan_line_neighbours,
     scan_line_sides,
-    steps_3_4_points,
     stream_scan_lines,
     touching_persistent,
 )
@@ -229,25 +231,11 @@ def test_cluster_wider_than_max_extent_is_static():
     np.testing.assert_array_equal(narrow.score[arm], 1.0)
 
 
-def _given(xyz, t, source, rows, k, radius, min_dt):
-    """The whole cloud's persistence and scan-line neighbours, read for the points ``rows``."""
-    idx, near = neighbour_table(xyz, k, radius)
-    persistent = persistent_points(t, idx, near, min_dt)
-    where = np.full(len(xyz), -1)
-    where[rows] = np.arange(len(rows))
-    sides = []
-    for side in scan_line_sides(scan_line_neighbours(t, source), persistent):
-        j = side.row[rows]
-        sides.append(type(side)(side.present[rows], np.where(j >= 0, where[j], -1),
-                                side.persistent[rows]))
-    return persistent[rows], tuple(sides)
-
-
-@pytest.mark.parametrize("x0", [0.0, 1.3, 2.6])
-def test_points_within_max_extent_and_radius_decide_as_the_whole_cloud(x0):
-    """A core strip 0.8 m wide with the points within max_extent + radius around it: its
-    points' flags and scores are the whole cloud's, though the arm, the rail and the ground's
-    single-epoch patches cross the strip's edge and the scan-line neighbours lie elsewhere."""
+@pytest.mark.parametrize("strip", [0.8, 2.5])
+def test_facts_of_strips_and_clusters_over_the_file_decide_as_the_whole_cloud(strip):
+    """Each point's facts from a strip with 2 x radius around it, the clusters joined over
+    the file in small blocks: the scores of the whole cloud's run, though the arm, the rail and
+    the ground's single-epoch patches cross the strips' edges and the blocks'."""
     rng = np.random.default_rng(4)
     xyz, t, _ = street(rng)
     top, t_top = hidden_box(rng)
@@ -260,23 +248,39 @@ def test_points_within_max_extent_and_radius_decide_as_the_whole_cloud(x0):
     whole = detect_transient(xyz, t, source, k=k, radius=radius, min_dt=min_dt,
                              max_extent=max_extent, centre=False)
     assert whole.flagged.any() and whole.info["single_epoch_wide"] > 0
-    halo = max_extent + radius
-    rows = np.flatnonzero((xyz[:, 0] >= x0 - halo) & (xyz[:, 0] <= x0 + 0.8 + halo))
-    core = (xyz[rows, 0] >= x0) & (xyz[rows, 0] <= x0 + 0.8)
-    persistent, sides = _given(xyz, t, source, rows, k, radius, min_dt)
-    part = detect_transient_given(xyz[rows], persistent, sides, k=k, radius=radius,
-                                  max_extent=max_extent)
-    np.testing.assert_array_equal(part.score[core], whole.score[rows][core])
+    facts = {name: np.zeros(len(t), dtype=bool) for name in ("persistent", "touches", "covered")}
+    for x0 in np.arange(xyz[:, 0].min(), xyz[:, 0].max() + strip, strip):
+        rows = np.flatnonzero(np.abs(xyz[:, 0] - (x0 + strip / 2)) <= strip / 2 + 2 * radius)
+        core = (xyz[rows, 0] >= x0) & (xyz[rows, 0] < x0 + strip)
+        part = point_facts(xyz[rows], t[rows], k=k, radius=radius, min_dt=min_dt)
+        for name, values in part.items():
+            facts[name][rows[core]] = values[core]
+    single = np.flatnonzero(~facts["persistent"])
+    where = np.full(len(t), -1)
+    where[single] = np.arange(single.size)
+    sides = [type(side)(side.present[single], np.where(side.row[single] >= 0,
+                                                        where[side.row[single]], -1),
+                        side.persistent[single])
+             for side in scan_line_sides(scan_line_neighbours(t, source), facts["persistent"])]
+    clusters, n_comp = cluster_decisions(
+        xyz[single], {name: facts[name][single] for name in ("touches", "covered")},
+        tuple(sides), radius=radius, max_extent=max_extent, block_points=50)
+    score = np.zeros(len(t))
+    score[single] = np.where(clusters.flagged, 2.0, 1.0)
+    np.testing.assert_array_equal(score, whole.score)
+    assert n_comp > 1 and int(clusters.wide.sum()) == whole.info["single_epoch_wide"]
 
 
-def test_steps_3_4_read_the_single_epoch_points_and_those_within_radius_in_plan():
-    """The points a tile's run computes on, against every pairwise distance."""
+def test_components_found_block_by_block_are_the_whole_sets():
+    """The blocks' components joined through their shared points: the same partition as one
+    connected-components pass over every link."""
     rng = np.random.default_rng(9)
-    xyz = rng.uniform(0, 5, (600, 3))
-    persistent = rng.random(600) > 0.05
-    radius = 0.3
-    d = np.linalg.norm(xyz[:, None, :2] - xyz[None, ~persistent, :2], axis=2)
-    expected = np.flatnonzero(~persistent | (d <= radius).any(axis=1))
-    got = steps_3_4_points(xyz, persistent, radius)
-    np.testing.assert_array_equal(got, expected)
-    assert 0 < got.size < len(xyz)
+    xyz = np.vstack([rng.uniform(0, 6, (1500, 3)) * [1, 1, 0.1],
+                     np.column_stack([np.linspace(0, 6, 200), np.full(200, 3.0),
+                                      np.full(200, 0.05)])])  # a chain across every block
+    radius = 0.12
+    n_ref, ref = cluster_labels(xyz, np.arange(len(xyz)), radius)
+    n_got, got = linked_components(xyz, radius, block_points=40)
+    assert n_got == n_ref and 1 < n_ref < len(xyz)
+    pairs = np.unique(np.column_stack([ref, got]), axis=0)  # one to one
+    assert len(pairs) == n_ref == len(np.unique(pairs[:, 1]))

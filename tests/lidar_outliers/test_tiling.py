@@ -228,7 +228,7 @@ STREET_TILE = 1.5  # metres: the box is 4 m long, the canopy 15 m, the one-pass 
         "transient, then height_field estimated"])
 def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
     """Persistence and the scan-line neighbours come from passes over the whole file, the
-    clusters from the tile and max_extent + radius around it: the whole cloud's result."""
+    clusters joined over the file: the whole cloud's result, tiles reading their scores."""
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
     stats_whole = process_file(street, whole, {"pipeline": pipeline})
     stats = process_file(street, tiled, {"pipeline": pipeline}, tile_size=STREET_TILE)
@@ -264,7 +264,7 @@ def test_transient_tiled_equals_whole_cloud_in_any_point_order(tmp_path):
 
 def test_transient_tiled_flags_the_canopy_when_max_extent_allows_it(street, tmp_path):
     """With max_extent above the canopy's 15 m the canopy floats and is flagged, whole and in
-    tiles of 5 m alike (the halo, max_extent + radius, then spans the street)."""
+    tiles of 5 m alike (the canopy's cluster spans several tiles, joined over the file)."""
     stage = {**STREET_TRANSIENT, "max_extent": 20.0}
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
     process_file(street, whole, {"pipeline": [stage]})
