@@ -396,6 +396,8 @@ def run_tile(
     run = stages if values_of is None and prepass_of is None else stages[:-1]
     _check_prepared(tiles, run)
     tile_params = params.model_copy(update={"pipeline": run or None, "reference_classes": None})
+    # one stage: its reach reads no flags of its own, so the halo is settled before it runs once
+    reach_first = len(run) == 1 and run is stages
     while True:
         total = float(sum(halos))
         rec, everything = load_region(tiles, cell, total)
@@ -403,13 +405,15 @@ def run_tile(
             rec = rec[~_among(rec["index"], dropped)]
         cloud = tile_cloud(tiles, rec, local_traj)
         cloud.known = region_known(tiles, rec)
-        result = run_pipeline(cloud, tile_params) if run else None
+        result = run_pipeline(cloud, tile_params) if run and not reach_first else None
         flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
         outside = outside_distance(cloud.xyz[:, :2], tiles, cell)
         wider = None if everything else _reach_violations(cloud, stages, halos, flags, outside)
         if wider is None:
             break
         halos = wider
+    if reach_first:
+        result = run_pipeline(cloud, tile_params)
     core = np.all(cells_of(cloud.xyz[:, :2], tiles.anchor, tiles.tile_size) == cell, axis=1)
     if values_of is None and prepass_of is None:
         assert result is not None
