@@ -315,7 +315,7 @@ def floating_clusters(xyz: np.ndarray, persistent: np.ndarray, touches: np.ndarr
     floating, flagged, wide = (np.zeros(n, dtype=bool) for _ in range(3))
     if single.size == 0:
         return Clusters(floating, flagged, wide)
-    n_comp, label = cluster_labels(xyz, single, radius)
+    n_comp, label = linked_components(xyz[single], radius)  # memory: a block's links
     attached = np.zeros(n_comp, dtype=bool)
     attached[label[touches[single]]] = True
     too_wide = cluster_widths(xyz[single, :2], label, n_comp) > max_extent
@@ -430,7 +430,7 @@ def point_facts(xyz: np.ndarray, gps_time: np.ndarray, *, k: int, radius: float,
 
 
 #: Single-epoch points a block of :func:`linked_components` aims at.
-BLOCK_POINTS = 200_000
+BLOCK_POINTS = 50_000
 
 
 def linked_components(xyz: np.ndarray, radius: float, block_points: int = BLOCK_POINTS

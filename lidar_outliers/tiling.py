@@ -73,7 +73,7 @@ POINT_DTYPE = np.dtype([
 ])
 #: Points per core tile the automatic tile size aims at at the mean density (denser parts of a
 #: file get more; a 617 k-point tile of the default pipeline peaked at 2.1 GB).
-TILE_POINTS = 250_000
+TILE_POINTS = 600_000
 #: Files up to this many points run whole in memory unless a tile size is given: the default
 #: pipeline holds about 680 bytes a point, so a whole run stays near 2 GB (3 M x 680 B); larger
 #: files run in tiles, which cost an extra pass over the file.
