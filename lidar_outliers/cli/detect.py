@@ -143,7 +143,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--tile-size", type=_tile_size, metavar="METRES",
         help="run tile by tile, square XY tiles of this edge (the same result as the whole cloud, "
         "memory set by the tile); default: files of over 3 M points (about 2 GB in memory "
-        "whole) in tiles of about 250 k points, smaller ones whole",
+        "whole) in tiles of about 600 k points, smaller ones whole",
     )
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)

@@ -90,7 +90,7 @@ class Settings(BaseSettings):
         "worker takes part in (when its pipeline runs in tiles).")
     tile_size: float = Field(
         0.0, ge=0, description="Edge in metres of the tiles of such a job; 0 = chosen from the "
-        "file's density (about 250 k points a tile).")
+        "file's density (about 600 k points a tile).")
     api_host: str = Field("127.0.0.1", description="Address `serve` binds the API to.")
     api_port: int = Field(8000, ge=1, le=65535, description="Port `serve` binds the API to.")
     retry_after_seconds: int = Field(30, ge=1, description="Retry-After sent with 429.")
