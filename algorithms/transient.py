@@ -40,8 +40,8 @@ depend only on the points within ``2 * radius``, so a pass over tiles with that 
 them gives them for every point; the scan-line neighbours (the returns fired just before and
 after) may lie anywhere, a pass over the whole file in time order gives them
 (:func:`scan_line_neighbours` on every point's time and scanner); the clusters are the
-connected components of the single-epoch points, found block by block in plan and joined
-through the points the blocks share (:func:`linked_components`), and every decision of steps
+connected components of the single-epoch points, found slab by slab along x and joined
+through the points the slabs share (:func:`linked_components`), and every decision of steps
 3-4 is a count, a bounding box or an "any" over a cluster's points, summed over the file.
 """
 
@@ -315,7 +315,7 @@ def floating_clusters(xyz: np.ndarray, persistent: np.ndarray, touches: np.ndarr
     floating, flagged, wide = (np.zeros(n, dtype=bool) for _ in range(3))
     if single.size == 0:
         return Clusters(floating, flagged, wide)
-    n_comp, label = linked_components(xyz[single], radius)  # memory: a block's links
+    n_comp, label = linked_components(xyz[single], radius)  # memory: a slab's links
     attached = np.zeros(n_comp, dtype=bool)
     attached[label[touches[single]]] = True
     too_wide = cluster_widths(xyz[single, :2], label, n_comp) > max_extent
@@ -429,39 +429,34 @@ def point_facts(xyz: np.ndarray, gps_time: np.ndarray, *, k: int, radius: float,
     return {"persistent": persistent, "touches": touches, "covered": covered}
 
 
-#: Single-epoch points a block of :func:`linked_components` aims at.
-BLOCK_POINTS = 50_000
+#: Points a slab of :func:`linked_components` holds (memory: about 10 kB a point where a
+#: standing vehicle piles its single-epoch returns up, some 190 links each).
+BLOCK_POINTS = 20_000
 
 
 def linked_components(xyz: np.ndarray, radius: float, block_points: int = BLOCK_POINTS
                       ) -> tuple[int, np.ndarray]:
     """:func:`cluster_labels` of every point of ``xyz`` (links of at most ``radius``), found
-    block by block in plan so that memory follows a block: each block's points and those within
-    ``radius`` of it are joined locally, and the blocks' components are joined through the
-    points they share. Two linked points lie in the block of either with its margin, so the
-    components are those of the whole set (the labels may be numbered otherwise)."""
+    block by block so that memory follows a block: the points sorted by x are cut into slabs
+    of ``block_points``, each slab's points and those within ``radius`` of it in x are joined
+    locally, and the slabs' components are joined through the points they share. Two linked
+    points lie within ``radius`` in x, so in the slab of either with its margin: the components
+    are those of the whole set (the labels may be numbered otherwise). Slabs by count, not by
+    area, keep a dense spot (a vehicle standing still) from making one block hold most links."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     m = len(xyz)
     if m == 0:
         return 0, np.zeros(0, dtype=np.int32)
-    xy = xyz[:, :2]
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    area = max(float(np.prod(hi - lo)), 1e-12)
-    size = max(4.0 * radius, float(np.sqrt(area * block_points / m)))
-    cell = np.floor((xy - lo) / size).astype(np.int64)
-    columns = int(cell[:, 1].max()) + 1
-    key = cell[:, 0] * columns + cell[:, 1]
-    order = np.argsort(key, kind="stable")
-    bounds = np.searchsorted(key[order], np.unique(key), side="left")
-    ends = np.r_[bounds[1:], m]
+    order = np.argsort(xyz[:, 0], kind="stable")
+    x = xyz[order, 0]
     sources, targets = [], []
-    for a, b in zip(bounds, ends, strict=True):
-        members = order[a:b]
-        c = cell[members[0]]
-        box_lo, box_hi = lo + c * size - radius, lo + (c + 1) * size + radius
-        around = np.flatnonzero(np.all((xy >= box_lo) & (xy <= box_hi), axis=1))
+    for a in range(0, m, block_points):
+        b = min(a + block_points, m)
+        lo = np.searchsorted(x, x[a] - radius, side="left")
+        hi = np.searchsorted(x, x[b - 1] + radius, side="right")
+        around = np.sort(order[lo:hi])
         _, local = cluster_labels(xyz, around, radius)
         first = np.full(int(local.max()) + 1, -1, dtype=np.int64)
         first[local[::-1]] = around[::-1]  # each local component's first point
