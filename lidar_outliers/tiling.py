@@ -398,7 +398,7 @@ def run_tile(
     _check_prepared(tiles, run)
     tile_params = params.model_copy(update={"pipeline": run or None, "reference_classes": None})
     # one stage: its reach reads no flags of its own, so the halo is settled before it runs once
-    reach_first = len(run) == 1 and run is stages
+    reach_first = values_of is None and prepass_of is None and len(run) == 1
     while True:
         total = float(sum(halos))
         rec, everything = load_region(tiles, cell, total)
@@ -467,7 +467,7 @@ class Settler:
     def __init__(self, kept: Streamed | None, stages: list[StageModel], points: int,
                  folder: Path) -> None:
         folder.mkdir(parents=True, exist_ok=True)
-        self.folder, self.stages, self.points = folder, stages, points
+        self.folder, self.stages = folder, stages
         if kept is None:
             flags = np.lib.format.open_memmap(folder / "flags.npy", mode="w+",
                                               dtype=FLAGS_DTYPE, shape=(points,))
