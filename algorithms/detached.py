@@ -270,26 +270,33 @@ XY_SPACING_K = 8
 SPACING_SAMPLE = 100_000
 
 
-def nearest_distance(xyz: np.ndarray) -> np.ndarray:
+def nearest_distance(xyz: np.ndarray, wanted: np.ndarray | None = None) -> np.ndarray:
     """(n,) each point's distance to its nearest other point (inf without one): what
-    :func:`median_spacing` takes the median of."""
+    :func:`median_spacing` takes the median of; NaN outside the mask ``wanted`` when given."""
     from scipy.spatial import cKDTree
 
-    if len(xyz) == 0:
-        return np.zeros(0)
-    dist, _ = cKDTree(xyz).query(xyz, k=[2])
-    return dist[:, 0]
+    if wanted is None:
+        wanted = np.ones(len(xyz), dtype=bool)
+    out = np.full(len(xyz), np.nan)
+    if wanted.any():
+        dist, _ = cKDTree(xyz).query(xyz[wanted], k=[2])
+        out[wanted] = dist[:, 0]
+    return out
 
 
-def xy_kth_distance(xyz: np.ndarray, k: int = XY_SPACING_K) -> np.ndarray:
+def xy_kth_distance(xyz: np.ndarray, k: int = XY_SPACING_K,
+                    wanted: np.ndarray | None = None) -> np.ndarray:
     """(n,) each point's XY distance to its k-th nearest other point (inf without one): what
-    :func:`xy_spacing` takes the median of."""
+    :func:`xy_spacing` takes the median of; NaN outside the mask ``wanted`` when given."""
     from scipy.spatial import cKDTree
 
-    if len(xyz) == 0:
-        return np.zeros(0)
-    dist, _ = cKDTree(xyz[:, :2]).query(xyz[:, :2], k=[k + 1])
-    return dist[:, 0]
+    if wanted is None:
+        wanted = np.ones(len(xyz), dtype=bool)
+    out = np.full(len(xyz), np.nan)
+    if wanted.any():
+        dist, _ = cKDTree(xyz[:, :2]).query(xyz[wanted, :2], k=[k + 1])
+        out[wanted] = dist[:, 0]
+    return out
 
 
 def strided_median(parts: Iterable[np.ndarray], max_points: int = SPACING_SAMPLE) -> float:
@@ -712,15 +719,16 @@ def pending_estimate(params: DetachedParameters) -> str | None:
 
 
 def estimate_values(xyz: np.ndarray, params: DetachedParameters,
-                    origin: np.ndarray | None) -> np.ndarray:
+                    origin: np.ndarray | None, wanted: np.ndarray | None = None) -> np.ndarray:
     """(n,) each point's value for the pending estimate (:func:`nearest_distance`,
-    :func:`xy_kth_distance`, :func:`small_ladder`), from its neighbourhood alone."""
+    :func:`xy_kth_distance`, :func:`small_ladder`), from its neighbourhood alone; the first
+    two only for the points of the mask ``wanted`` when given (NaN elsewhere)."""
     local = relative(check_xyz(xyz), origin)
     name = pending_estimate(params)
     if name == "spacing":
-        return nearest_distance(local)
+        return nearest_distance(local, wanted)
     if name == "spacing_xy":
-        return xy_kth_distance(local)
+        return xy_kth_distance(local, wanted=wanted)
     if name == "voxel":
         return ladder_pieces(local, params.piece_points, float(params.spacing_xy))[0]
     raise ValueError("every estimate of these parameters is given")
@@ -748,19 +756,22 @@ def pin_estimate(params: DetachedParameters,
 
 
 def tile_reach(xyz: np.ndarray, params: DetachedParameters, where: np.ndarray,
-               origin: np.ndarray | None) -> np.ndarray:
+               origin: np.ndarray | None, allowed: np.ndarray | None = None) -> np.ndarray:
     """(n,) XY metres around each point of the mask ``where`` (others: 0) its result depended
     on in this cloud (a region of a larger one: see above); with an estimate pending, that of
-    its value (:func:`estimate_values`)."""
+    its value (:func:`estimate_values`). ``allowed``: as for
+    :func:`algorithms.height_field.tile_reach`."""
+    from algorithms.tiles import kth_distance_within
+
     local = relative(check_xyz(xyz), origin)
     out = np.zeros(len(local))
     if not where.any():
         return out
     name = pending_estimate(params)
     if name == "spacing":
-        out[where] = nearest_distance(local)[where]
+        out = kth_distance_within(local, 2, where, allowed)
     elif name == "spacing_xy":
-        out[where] = xy_kth_distance(local)[where]
+        out = kth_distance_within(local[:, :2], XY_SPACING_K + 1, where, allowed)
     elif name == "voxel":
         out = ladder_pieces(local, params.piece_points, float(params.spacing_xy))[1]
     else:

@@ -99,35 +99,42 @@ def sigma_of_residuals(parts: Iterable[np.ndarray], sample: int = SIGMA_SAMPLE) 
     return float(MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
 
 
-def full_residuals(xyz: np.ndarray, k: int, origin: np.ndarray | None = None) -> np.ndarray:
-    """(n,) full-patch studentised residual of each point (NaN where untested), as
-    ``sigma="auto"`` estimates from them (the points centred as :func:`detect_height_field`
-    centres them, neighbours found relative to ``origin`` as there)."""
+def full_residuals(xyz: np.ndarray, k: int, origin: np.ndarray | None = None,
+                   wanted: np.ndarray | None = None) -> np.ndarray:
+    """(n,) full-patch studentised residual of each point (NaN where untested, and outside the
+    mask ``wanted`` when given), as ``sigma="auto"`` estimates from them (the points centred
+    as :func:`detect_height_field` centres them, neighbours found relative to ``origin`` as
+    there)."""
     from algorithms.detached import relative
-    from algorithms.height_field_fits import all_terms
+    from algorithms.height_field_fits import terms_of
 
     arr = check_xyz(xyz)
-    if len(arr) == 0:
-        return np.zeros(0)
+    out = np.full(len(arr), np.nan)
+    rows = np.arange(len(arr)) if wanted is None else np.flatnonzero(wanted)
+    if rows.size == 0:
+        return out
     local = arr - arr.mean(axis=0)
-    return studentised_full(all_terms(local, neighbours(relative(arr, origin), k)))
+    out[rows] = studentised_full(terms_of(local, neighbours(relative(arr, origin), k, rows),
+                                          rows))
+    return out
 
 
-def neighbours(xyz: np.ndarray, k: int) -> np.ndarray:
-    """(n, k + 1) indices of each point's k + 1 nearest points (itself normally first); equal
-    distances in the points' order (:func:`algorithms.detached.nearest_first`), so a tile,
-    whose points are the cloud's in the same order and at the same coordinates, picks the
-    whole cloud's neighbours."""
+def neighbours(xyz: np.ndarray, k: int, rows: np.ndarray | None = None) -> np.ndarray:
+    """(m, k + 1) indices of the k + 1 nearest points (itself normally first) of each point
+    of ``rows`` (default all); equal distances in the points' order
+    (:func:`algorithms.detached.nearest_first`), so a tile, whose points are the cloud's in the
+    same order and at the same coordinates, picks the whole cloud's neighbours."""
     from scipy.spatial import cKDTree
 
     from algorithms.detached import nearest_first
 
     tree = cKDTree(xyz)
-    n = len(xyz)
-    kk = min(k + 1, n)
-    out = np.empty((n, kk), dtype=np.int64)
-    for s in range(0, n, KNN_BATCH):
-        out[s:s + KNN_BATCH] = nearest_first(tree, xyz[s:s + KNN_BATCH], kk, workers=-1)[1]
+    rows = np.arange(len(xyz)) if rows is None else rows
+    kk = min(k + 1, len(xyz))
+    out = np.empty((rows.size, kk), dtype=np.int64)
+    for s in range(0, rows.size, KNN_BATCH):
+        batch = xyz[rows[s:s + KNN_BATCH]]
+        out[s:s + KNN_BATCH] = nearest_first(tree, batch, kk, workers=-1)[1]
     return out
 
 
@@ -242,6 +249,7 @@ def detect_height_field(
     spacing_xy: float | str = "auto",
     voxel: float | str = "auto",
     origin: np.ndarray | None = None,
+    wanted: np.ndarray | None = None,
 ) -> DetectorResult:
     """Edge-aware leave-one-out height-field outlier test (see the module docstring).
 
@@ -260,6 +268,8 @@ def detect_height_field(
     origin : (3,) the corner of the low test's voxel and cell grids and of the coordinates
         neighbours are found in (default: the lowest coordinates); runs that share it put a
         point in the same voxels and give it the same neighbours.
+    wanted : (n,) bool, the points whose scores are read (default all; a tile's core): the
+        patches of the others are not fitted (NaN), and ``sigma="auto"`` comes from these.
 
     Returns
     -------
@@ -268,7 +278,7 @@ def detect_height_field(
     """
     HeightFieldParameters(k=k, sigma=sigma, threshold=threshold, rms_weight=rms_weight,
                           one_sided=one_sided, low=low, spacing_xy=spacing_xy, voxel=voxel)
-    from algorithms.height_field_fits import all_terms, scores_from_terms
+    from algorithms.height_field_fits import scores_from_terms, terms_of
 
     arr = check_xyz(xyz)
     n = len(arr)
@@ -281,15 +291,17 @@ def detect_height_field(
 
     local = arr - arr.mean(axis=0)
     grid_local = relative(arr, origin)  # the same coordinates in a tile: the same neighbours
-    terms = all_terms(local, neighbours(grid_local, k))
+    rows = np.arange(n) if wanted is None else np.flatnonzero(wanted)
+    terms = terms_of(local, neighbours(grid_local, k, rows), rows)
     if sigma == "auto":
         sig, source = estimate_sigma(terms), "auto"
     else:
         sig, source = float(sigma), "given"
     if not sig > 0:  # a perfect synthetic surface: every residual is rounding
         sig = float(np.finfo(float).eps * max(1.0, float(np.abs(local).max())))
-    score = scores_from_terms(terms, sig, float(rms_weight), ONE_SIDED_NZ if one_sided else 2.0,
-                              HALF_GATE, MAX_LEVERAGE)
+    score = np.full(n, np.nan)
+    score[rows] = scores_from_terms(terms, sig, float(rms_weight),
+                                    ONE_SIDED_NZ if one_sided else 2.0, HALF_GATE, MAX_LEVERAGE)
     if low:
         under, info["low_test"] = low_scores(grid_local, sig, spacing_xy, voxel)
         info["low_test"]["points_flagged"] = int(np.count_nonzero(under > threshold))
@@ -325,19 +337,20 @@ def pending_estimate(params: HeightFieldParameters) -> str | None:
 
 
 def estimate_values(xyz: np.ndarray, params: HeightFieldParameters,
-                    origin: np.ndarray | None) -> np.ndarray:
+                    origin: np.ndarray | None, wanted: np.ndarray | None = None) -> np.ndarray:
     """(n,) each point's value for the pending estimate: its full-patch residual
     (:func:`full_residuals`), its XY distance to its 8th neighbour
     (:func:`algorithms.detached.xy_kth_distance`) or its small-piece bits
-    (:func:`algorithms.detached.small_ladder`)."""
+    (:func:`algorithms.detached.small_ladder`); the first two only for the points of the mask
+    ``wanted`` when given (NaN elsewhere)."""
     from algorithms.detached import ladder_pieces, relative, xy_kth_distance
 
     name = pending_estimate(params)
     if name == "sigma":
-        return full_residuals(xyz, params.k, origin)
+        return full_residuals(xyz, params.k, origin, wanted)
     local = relative(check_xyz(xyz), origin)
     if name == "spacing_xy":
-        return xy_kth_distance(local)
+        return xy_kth_distance(local, wanted=wanted)
     if name == "voxel":
         return ladder_pieces(local, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
     raise ValueError("every estimate of these parameters is given")
@@ -362,19 +375,22 @@ def pin_low_estimate(params: HeightFieldParameters,
 
 
 def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray,
-               origin: np.ndarray | None) -> np.ndarray:
+               origin: np.ndarray | None, allowed: np.ndarray | None = None) -> np.ndarray:
     """(n,) XY metres around each point of the mask ``where`` (others: 0) its result, or with
-    an estimate pending its value, depended on in this cloud (a region of a larger one)."""
+    an estimate pending its value, depended on in this cloud (a region of a larger one).
+    ``allowed`` (n,): the reach each point may have; a neighbourhood known to lie within it
+    may be reported by that bound (:func:`algorithms.tiles.kth_distance_within`)."""
     from scipy.spatial import cKDTree
 
     from algorithms.detached import (
+        XY_SPACING_K,
         ladder_pieces,
         piece_reach,
         reach_through,
         relative,
         voxel_size,
-        xy_kth_distance,
     )
+    from algorithms.tiles import kth_distance_within
 
     arr = check_xyz(xyz)
     n = len(arr)
@@ -384,15 +400,14 @@ def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray
     name = pending_estimate(params)
     local = relative(arr, origin)
     if name == "spacing_xy":
-        return np.where(where, xy_kth_distance(local), 0.0)
+        return kth_distance_within(local[:, :2], XY_SPACING_K + 1, where, allowed)
     if name == "voxel":
         reach = ladder_pieces(local, LOW_PIECE_POINTS, float(params.spacing_xy))[1]
         return np.where(where, reach, 0.0)
     kk = params.k + 1  # the point itself and its k neighbours
     if n < kk:
         return np.where(where, np.inf, 0.0)
-    dist, _ = cKDTree(local).query(local[where], k=[kk])
-    out[where] = dist[:, 0]
+    out = kth_distance_within(local, kk, where, allowed)
     if name is None and params.low:
         size = voxel_size(local, LOW_PIECE_POINTS, float(params.spacing_xy), params.voxel)
         if size is not None:

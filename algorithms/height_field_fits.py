@@ -159,13 +159,19 @@ def point_terms(xyz: np.ndarray, nbr_row: np.ndarray, i: int, out: np.ndarray) -
 
 
 @njit(cache=True, parallel=True)
-def all_terms(xyz: np.ndarray, nbr: np.ndarray) -> np.ndarray:
-    """point_terms for every row of nbr (n, k): (n, 5, 4) residual, leverage, rms, normal z."""
-    n = nbr.shape[0]
-    terms = np.full((n, 5, 4), np.nan)
-    for i in prange(n):
-        point_terms(xyz, nbr[i], i, terms[i])
+def terms_of(xyz: np.ndarray, nbr: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """point_terms of each of ``points`` (m,) on its row of nbr (m, k): (m, 5, 4) residual,
+    leverage, rms, normal z."""
+    m = nbr.shape[0]
+    terms = np.full((m, 5, 4), np.nan)
+    for r in prange(m):
+        point_terms(xyz, nbr[r], points[r], terms[r])
     return terms
+
+
+def all_terms(xyz: np.ndarray, nbr: np.ndarray) -> np.ndarray:
+    """:func:`terms_of` every point, row i of nbr (n, k) being point i's neighbours."""
+    return terms_of(xyz, nbr, np.arange(nbr.shape[0], dtype=np.int64))
 
 
 @njit(cache=True)

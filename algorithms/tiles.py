@@ -92,3 +92,50 @@ def spatial_batches(
     order = np.lexsort((fine, tile))
     for start in range(0, n, batch_points):
         yield order[start : start + batch_points]
+
+
+def cell_counts(points: np.ndarray, edge: float) -> np.ndarray:
+    """(n,) how many of ``points`` (n, d) share each point's cell of a grid of ``edge`` metres
+    (corner at their lowest coordinates)."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    ij = np.floor((points - points.min(axis=0)) / edge).astype(np.int64)
+    dims = ij.max(axis=0) + 1
+    if float(np.prod(dims.astype(np.float64))) < 2.0**62:  # one integer key per cell
+        key = np.ravel_multi_index(ij.T, tuple(int(v) for v in dims))
+        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    else:
+        _, inverse, counts = np.unique(ij, axis=0, return_inverse=True, return_counts=True)
+    return counts[inverse.ravel()]
+
+
+def kth_distance_within(points: np.ndarray, k: int, where: np.ndarray,
+                        allowed: np.ndarray | None = None) -> np.ndarray:
+    """(n,) for each point of the mask ``where`` (others 0) its distance to its k-th nearest
+    point of ``points`` (n, d), itself counted first; inf for all when there are fewer than k.
+
+    With ``allowed`` (n,), a point may get an upper bound of that distance instead, when the
+    bound is at most its ``allowed`` and cheap: in a grid of cells whose diagonal is the
+    smallest ``allowed`` of the mask, a cell holding k points holds each of them within its
+    diagonal of k points. A tile's reach check asks only whether the distance fits in the
+    halo, and in a dense cloud nearly every point answers so without a k-d tree query.
+    """
+    from scipy.spatial import cKDTree
+
+    n, d = points.shape
+    out = np.zeros(n)
+    if not where.any():
+        return out
+    if n < k:
+        return np.where(where, np.inf, 0.0)
+    exact = where.copy()
+    if allowed is not None:
+        limit = float(np.min(allowed[where]))
+        if 0.0 < limit < np.inf:
+            bounded = where & (cell_counts(points, limit / np.sqrt(d)) >= k)
+            out[bounded] = limit
+            exact &= ~bounded
+    if exact.any():
+        dist, _ = cKDTree(points).query(points[exact], k=[k], workers=-1)
+        out[exact] = dist[:, 0]
+    return out

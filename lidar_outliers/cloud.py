@@ -37,6 +37,9 @@ class Cloud:
         file among it) when the cloud is a tile's region
         (:class:`~lidar_outliers.detectors.base.Prepass`); None: the cloud is all there is. A
         subset keeps its points' rows.
+    wanted : (n,) bool or None
+        The points whose results are read, when that is not all of them (a tile's core):
+        detectors that can may leave the others untested. A subset keeps its points' rows.
     """
 
     xyz: np.ndarray
@@ -48,6 +51,7 @@ class Cloud:
     trajectory: np.ndarray | None = None
     anchor: np.ndarray | None = None
     known: dict[str, np.ndarray] | None = None
+    wanted: np.ndarray | None = None
 
     @classmethod
     def from_arrays(
@@ -98,6 +102,7 @@ class Cloud:
             trajectory=self.trajectory,
             anchor=self.anchor,
             known=None if self.known is None else {k: v[index] for k, v in self.known.items()},
+            wanted=None if self.wanted is None else self.wanted[index],
         )
 
     def with_trajectory(self, trajectory: np.ndarray) -> Cloud:

@@ -40,7 +40,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -300,10 +300,13 @@ def load_region(tiles: TileSet, cell: tuple[int, int], halo: float) -> tuple[np.
 
 
 def outside_distance(xy: np.ndarray, tiles: TileSet, cell: tuple[int, int]) -> np.ndarray:
-    """(n,) Chebyshev XY distance from each point to the square of ``cell`` (0 inside)."""
+    """(n,) Chebyshev XY distance from each point to the square of ``cell``, negative inside
+    (minus the distance to its nearest edge)."""
     lo = tiles.anchor + np.asarray(cell, dtype=np.float64) * tiles.tile_size
     hi = lo + tiles.tile_size
-    return np.max(np.maximum(np.maximum(lo - xy, xy - hi), 0.0), axis=1)
+    beyond = np.maximum(lo - xy, xy - hi)  # per axis: > 0 outside, -(distance to an edge) in
+    return np.where(np.all(beyond <= 0.0, axis=1), np.max(beyond, axis=1),
+                    np.max(np.maximum(beyond, 0.0), axis=1))
 
 
 def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = None) -> Cloud:
@@ -413,9 +416,9 @@ def run_tile(
         if wider is None:
             break
         halos = wider
-    if reach_first:
-        result = run_pipeline(cloud, tile_params)
     core = np.all(cells_of(cloud.xyz[:, :2], tiles.anchor, tiles.tile_size) == cell, axis=1)
+    if reach_first:  # only the core's results are read
+        result = run_pipeline(replace(cloud, wanted=core), tile_params)
     if values_of is None and prepass_of is None:
         assert result is not None
         return _core_result(rec, core, result, halos)
@@ -425,7 +428,7 @@ def run_tile(
     # was checked): the earlier stages' wider halos are not computed on again
     use = (flags == 0) & (outside <= halos[-1])
     if values_of is not None:
-        out["values"] = _stage_values(cloud, stages[-1], use)[core]
+        out["values"] = _stage_values(cloud, stages[-1], use, core)[core]
         return out
     values = _prepass_values(cloud, stages[-1], use)
     out["in_stage"] = (flags == 0)[core]
@@ -534,15 +537,16 @@ def _untouched(tiles: TileSet, cell: tuple[int, int], params: PipelineParams,
     return out
 
 
-def _stage_values(cloud: Cloud, stage: StageModel, use: np.ndarray) -> np.ndarray:
+def _stage_values(cloud: Cloud, stage: StageModel, use: np.ndarray,
+                  wanted: np.ndarray) -> np.ndarray:
     """(n,) the values a stage estimates from, computed on the points ``use`` (those earlier
-    stages left, near enough; NaN else)."""
+    stages left, near enough; NaN else) for the points ``wanted``."""
     estimate = get_detector(stage.detector).estimate
     assert estimate is not None
     out = np.full(len(cloud), np.nan)
     index = np.flatnonzero(use)
     if index.size:
-        sub = cloud if index.size == len(cloud) else cloud.subset(index)
+        sub = replace(cloud, wanted=wanted).subset(index)
         out[index] = estimate.values(sub, stage.parameters())
     return out
 
@@ -662,10 +666,12 @@ def _reach_violations(
     cloud: Cloud, stages: list[StageModel], halos: list[float], flags: np.ndarray,
     outside: np.ndarray,
 ) -> list[float] | None:
-    """Wider halos when a stage's points that later stages rely on reached beyond its halo.
+    """Wider halos when a stage's points that later stages rely on reached beyond the region.
 
-    Stage i must be exact within the halos of the stages after it; its points there may reach
-    at most ``halos[i]`` (then everything they saw lies where the stages before are exact).
+    Stage i must be exact within the halos of the stages after it (``outside``: each point's
+    signed distance to the core, :func:`outside_distance`). The stages before it are exact
+    within ``sum(halos[i:])``, so a point of it may reach that far past the core: its own
+    distance inside the core and the halo ``halos[i]`` both count.
     """
     earlier = FLAGS_DTYPE(0)
     wider = list(halos)
@@ -681,11 +687,13 @@ def _reach_violations(
         index = np.flatnonzero(stage_in)
         if index.size == 0:
             continue
-        used = spec.reach(cloud.subset(index), stage.parameters(), needed[index])[needed[index]]
-        worst = float(used.max()) if used.size else 0.0
-        if worst > halos[i]:
-            wider[i] = (max(halos[i] * HALO_GROWTH, worst * 1.01) if math.isfinite(worst)
-                        else unbounded_growth(halos[i]))
+        allowed = sum(halos[i:]) - outside[index]
+        used = spec.reach(cloud.subset(index), stage.parameters(), needed[index], allowed)
+        short = (used - allowed)[needed[index]]
+        worst = float(short.max()) if short.size else -math.inf
+        if worst > 0:
+            wider[i] = (max(halos[i] * HALO_GROWTH, (halos[i] + worst) * 1.01)
+                        if math.isfinite(worst) else unbounded_growth(halos[i]))
             grew = True
     return wider if grew else None
 

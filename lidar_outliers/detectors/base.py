@@ -57,11 +57,13 @@ Run = Callable[[Cloud, Any], DetectorResult | GroundResult]
 #: XY metres a point's result may depend on around it, from the stage's parameters; None: the
 #: result depends on the whole cloud (or on its time series), so the stage is not run in tiles.
 Halo = Callable[[Any], "float | None"]
-#: (n,) metres of the neighbourhood each point of ``cloud`` actually used (k-th neighbour,
-#: search radius), for the points of the (n,) bool mask (others: anything): for detectors
-#: whose reach depends on the data, checked against the halo; inf: more points than the cloud
-#: at hand holds (the halo grows until they are there).
-Reach = Callable[[Cloud, Any, np.ndarray], np.ndarray]
+#: ``reach(cloud, params, where, allowed)``: (n,) metres of the neighbourhood each point of
+#: ``cloud`` actually used (k-th neighbour, search radius), for the points of the (n,) bool
+#: mask ``where`` (others: anything): for detectors whose reach depends on the data, checked
+#: against the halo; inf: more points than the cloud at hand holds (the halo grows until they
+#: are there). ``allowed`` (n,): the reach each point may have in this region; a point whose
+#: neighbourhood is known to lie within it may report that bound instead of the exact reach.
+Reach = Callable[[Cloud, Any, np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -114,20 +116,15 @@ def no_halo(_params: Any) -> None:
     return None
 
 
-def knn_reach(xyz: np.ndarray, k: int, where: np.ndarray) -> np.ndarray:
+def knn_reach(xyz: np.ndarray, k: int, where: np.ndarray,
+              allowed: np.ndarray | None = None) -> np.ndarray:
     """(n,) distance from each point of the mask ``where`` to its k-th nearest point (itself
-    counted first; 0 outside the mask); inf where the cloud has fewer than k points (every
-    point then needs more points than these: a tile's halo grows until it holds k)."""
-    from scipy.spatial import cKDTree
+    counted first; 0 outside the mask), or a bound of it within ``allowed``
+    (:func:`algorithms.tiles.kth_distance_within`); inf where the cloud has fewer than k points
+    (every point then needs more points than these: a tile's halo grows until it holds k)."""
+    from algorithms.tiles import kth_distance_within
 
-    n = len(xyz)
-    if n < k:
-        return np.full(n, np.inf)
-    out = np.zeros(n)
-    if np.any(where):
-        dist, _ = cKDTree(xyz).query(xyz[where], k=[k], workers=-1)
-        out[where] = dist[:, 0]
-    return out
+    return kth_distance_within(xyz, k, where, allowed)
 
 
 @dataclass(frozen=True)

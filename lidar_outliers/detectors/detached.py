@@ -62,13 +62,14 @@ def run(cloud: Cloud, params: DetachedParameters) -> DetectorResult:
     return detect_detached(cloud.xyz, **params.as_dict(), origin=grid_origin(cloud))
 
 
-def reach(cloud: Cloud, params: DetachedParameters, where: np.ndarray) -> np.ndarray:
+def reach(cloud: Cloud, params: DetachedParameters, where: np.ndarray,
+          allowed: np.ndarray | None = None) -> np.ndarray:
     from algorithms.detached import pending_estimate, tile_reach
 
     if pending_estimate(params) == "voxel":
         return np.where(where, LADDER(cloud, params.piece_points, float(params.spacing_xy))[1],
                         0.0)
-    return tile_reach(cloud.xyz, params, where, grid_origin(cloud))
+    return tile_reach(cloud.xyz, params, where, grid_origin(cloud), allowed)
 
 
 def values(cloud: Cloud, params: DetachedParameters) -> np.ndarray:
@@ -76,7 +77,7 @@ def values(cloud: Cloud, params: DetachedParameters) -> np.ndarray:
 
     if pending_estimate(params) == "voxel":
         return LADDER(cloud, params.piece_points, float(params.spacing_xy))[0]
-    return estimate_values(cloud.xyz, params, grid_origin(cloud))
+    return estimate_values(cloud.xyz, params, grid_origin(cloud), cloud.wanted)
 
 
 def pin(params: DetachedParameters,

@@ -11,7 +11,8 @@ from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors.base import Detector
 
 
-def reach(cloud: Cloud, params: DrorParameters, where: np.ndarray) -> np.ndarray:
+def reach(cloud: Cloud, params: DrorParameters, where: np.ndarray,
+          allowed: np.ndarray | None = None) -> np.ndarray:
     """Each point's search radius (metres; every point is queried)."""
     from algorithms.dror import dynamic_radius
 

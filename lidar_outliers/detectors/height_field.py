@@ -24,16 +24,18 @@ from lidar_outliers.detectors.detached import LADDER, grid_origin
 def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
     from algorithms.height_field import detect_height_field
 
-    return detect_height_field(cloud.xyz, **params.as_dict(), origin=grid_origin(cloud))
+    return detect_height_field(cloud.xyz, **params.as_dict(), origin=grid_origin(cloud),
+                               wanted=cloud.wanted)
 
 
-def reach(cloud: Cloud, params: HeightFieldParameters, where: np.ndarray) -> np.ndarray:
+def reach(cloud: Cloud, params: HeightFieldParameters, where: np.ndarray,
+          allowed: np.ndarray | None = None) -> np.ndarray:
     from algorithms.height_field import LOW_PIECE_POINTS, pending_estimate, tile_reach
 
     if pending_estimate(params) == "voxel":
         return np.where(where, LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[1],
                         0.0)
-    return tile_reach(cloud.xyz, params, where, grid_origin(cloud))
+    return tile_reach(cloud.xyz, params, where, grid_origin(cloud), allowed)
 
 
 def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
@@ -41,7 +43,7 @@ def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
 
     if pending_estimate(params) == "voxel":
         return LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
-    return estimate_values(cloud.xyz, params, grid_origin(cloud))
+    return estimate_values(cloud.xyz, params, grid_origin(cloud), cloud.wanted)
 
 
 def pin(params: HeightFieldParameters,

@@ -23,5 +23,5 @@ DETECTOR = Detector(
     flag_bit=2,
     # k nearest neighbours: a first guess, widened where a tile's patches reach further
     halo=lambda params: 2.0,
-    reach=lambda cloud, params, where: knn_reach(cloud.xyz, params.k, where),
+    reach=lambda cloud, params, where, allowed: knn_reach(cloud.xyz, params.k, where, allowed),
 )

@@ -12,7 +12,8 @@ from lidar_outliers.detectors.base import Detector
 from lidar_outliers.errors import MissingDimensionError
 
 
-def reach(cloud: Cloud, params: SnowParameters, where: np.ndarray) -> np.ndarray:
+def reach(cloud: Cloud, params: SnowParameters, where: np.ndarray,
+          allowed: np.ndarray | None = None) -> np.ndarray:
     """Each point's search radius (metres; only the dark points are queried)."""
     from algorithms.dror import dynamic_radius
 

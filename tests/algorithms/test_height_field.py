@@ -13,6 +13,7 @@ from algorithms.height_field import (
     ONE_SIDED_NZ,
     detect_height_field,
     floor_cells,
+    full_residuals,
     neighbours,
 )
 from algorithms.height_field_fits import (
@@ -187,6 +188,21 @@ def mirror_scene(rng: np.random.Generator) -> tuple[np.ndarray, int, int]:
     wall = np.column_stack([wx, np.full(wx.size, 6.5), wz])
     wall += rng.normal(0, 0.002, wall.shape)
     return np.vstack([road, img, wall]), len(road), len(road) + n_img
+
+
+def test_wanted_points_get_the_scores_of_the_whole_run():
+    rng = np.random.default_rng(12)
+    xyz, first_img, _ = mirror_scene(rng)
+    wanted = rng.random(len(xyz)) < 0.3
+    wanted[first_img:first_img + 20] = True
+    whole = detect_height_field(xyz, sigma=0.003)
+    part = detect_height_field(xyz, sigma=0.003, wanted=wanted)
+    np.testing.assert_array_equal(part.score[wanted], whole.score[wanted])
+    assert np.array_equal(part.flagged[wanted], whole.flagged[wanted])
+    assert part.flagged[wanted].any()
+    auto = full_residuals(xyz, 24)
+    np.testing.assert_array_equal(full_residuals(xyz, 24, wanted=wanted)[wanted], auto[wanted])
+    assert np.isnan(full_residuals(xyz, 24, wanted=wanted)[~wanted]).all()
 
 
 def test_mirror_returns_under_the_road_are_low():
