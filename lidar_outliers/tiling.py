@@ -305,8 +305,7 @@ def outside_distance(xy: np.ndarray, tiles: TileSet, cell: tuple[int, int]) -> n
     lo = tiles.anchor + np.asarray(cell, dtype=np.float64) * tiles.tile_size
     hi = lo + tiles.tile_size
     beyond = np.maximum(lo - xy, xy - hi)  # per axis: > 0 outside, -(distance to an edge) in
-    return np.where(np.all(beyond <= 0.0, axis=1), np.max(beyond, axis=1),
-                    np.max(np.maximum(beyond, 0.0), axis=1))
+    return np.max(beyond, axis=1)  # outside: the largest positive part; inside: the nearest edge
 
 
 def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = None) -> Cloud:

@@ -19,6 +19,7 @@ from lidar_outliers.tiling import (
     TileError,
     cell_name,
     load_region,
+    outside_distance,
     partition,
     run_tile,
 )
@@ -346,3 +347,20 @@ def test_corrupt_tile_file_is_an_error_naming_it(scene, tmp_path):
     params = PipelineParams.model_validate({"pipeline": [{"detector": "dror"}]})
     with pytest.raises(TileError, match=cell_name(cell)):
         run_tile(tiles, cell, params, list(params.pipeline))
+
+
+def test_outside_distance_is_signed_chebyshev_distance_to_the_cell() -> None:
+    class Grid:
+        anchor = np.array([100.0, 200.0])
+        tile_size = 10.0
+
+    rng = np.random.default_rng(3)
+    xy = Grid.anchor + rng.uniform(-15.0, 35.0, (500, 2))
+    lo = Grid.anchor + np.array([10.0, 10.0])  # cell (1, 1)
+    hi = lo + 10.0
+    inside = np.all((xy >= lo) & (xy <= hi), axis=1)
+    to_edge = np.min(np.hstack([xy - lo, hi - xy]), axis=1)
+    beyond = np.max(np.hstack([lo - xy, xy - hi]), axis=1)
+    expected = np.where(inside, -to_edge, beyond)
+    np.testing.assert_allclose(outside_distance(xy, Grid, (1, 1)), expected)
+    assert inside.any() and (~inside).any()
