@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="service runs with this many worker processes (none: CLI only)")
     parser.add_argument("--params", help="pipeline JSON (default: the file's default pipeline)")
     parser.add_argument("--tile-size", type=float, help="tile edge in metres (default: auto)")
-    parser.add_argument("--tile-job-points", type=int, default=5_000_000,
+    parser.add_argument("--tile-job-points", type=int, default=2_000_000,
                         help="the service's TILE_JOB_POINTS")
     parser.add_argument("--folder", type=Path, help="work folder (default: a temporary one)")
     args = parser.parse_args(argv)

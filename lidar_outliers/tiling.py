@@ -73,12 +73,13 @@ POINT_DTYPE = np.dtype([
 ])
 #: Points per core tile the automatic tile size aims at at the mean density (denser parts of a
 #: file get more). A halo costs in proportion to the tile's edge: on a simulated 4 M-point drive
-#: the default pipeline took 656 s in tiles of 250 k points and 404 s in tiles of 600 k.
+#: the default pipeline took 656 s in tiles of 250 k points and 404 s in tiles of 600 k (before
+#: reaches were bounded by dense cells; 146 s now, at a peak of 1.1 GB).
 TILE_POINTS = 600_000
-#: Files up to this many points run whole in memory unless a tile size is given: the default
-#: pipeline holds about 680 bytes a point, so a whole run stays near 2 GB (3 M x 680 B); larger
-#: files run in tiles, which cost an extra pass over the file.
-WHOLE_CLOUD_POINTS = 3_000_000
+#: Files up to this many points run whole in memory unless a tile size is given. Run whole, a
+#: simulated 2 M-point drive peaked at 1.5 GB with the default mobile pipeline and 1.6 GB with
+#: ``detached`` (2.8 GB at 4 M points); in tiles the 4 M points took 1.8x the whole run's time.
+WHOLE_CLOUD_POINTS = 2_000_000
 MANIFEST = "tiles.json"
 #: A tile whose points reach further than its halo is run again with the halo times this.
 HALO_GROWTH = 2.0

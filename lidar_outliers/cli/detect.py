@@ -142,7 +142,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--tile-size", type=_tile_size, metavar="METRES",
         help="run tile by tile, square XY tiles of this edge (the same result as the whole cloud, "
-        "memory set by the tile); default: files of over 3 M points (about 2 GB in memory "
+        "memory set by the tile); default: files of over 2 M points (about 1.6 GB in memory "
         "whole) in tiles of about 600 k points, smaller ones whole",
     )
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

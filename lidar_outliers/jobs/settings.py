@@ -86,7 +86,7 @@ class Settings(BaseSettings):
     )
     worker_concurrency: int = Field(1, ge=1, description="Worker processes `serve` starts.")
     tile_job_points: int = Field(
-        5_000_000, ge=1, description="A job of more points is cut into tiles that every "
+        2_000_000, ge=1, description="A job of more points is cut into tiles that every "
         "worker takes part in (when its pipeline runs in tiles).")
     tile_size: float = Field(
         0.0, ge=0, description="Edge in metres of the tiles of such a job; 0 = chosen from the "
