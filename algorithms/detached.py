@@ -194,11 +194,25 @@ def nearest_first(tree: Any, queries: np.ndarray, k: int,
     distances in the order of the tree's points (the first in the cloud first): a tile, whose
     points are the cloud's in the same order, then picks the same neighbours as the whole
     cloud where several lie at the k-th distance (a millimetre grid makes that common).
-    Ties reaching past ``TIE_SLACK`` further neighbours keep the tree's order."""
-    kk = min(k + TIE_SLACK, tree.n)
+    Ties reaching past ``TIE_SLACK`` further neighbours keep the tree's order.
+
+    One neighbour past the k-th tells which queries have a tie across the k-th distance; only
+    those are asked for the slack (in dense clouds most have none)."""
+    m = len(queries)
+    kk = min(k + 1, tree.n)
     dist, idx = tree.query(queries, k=kk, workers=workers)
-    dist, idx = dist.reshape(len(queries), kk), idx.reshape(len(queries), kk)
-    order = np.lexsort((idx, dist), axis=-1)[:, :k]
+    dist, idx = dist.reshape(m, kk), idx.reshape(m, kk)
+    if kk > k:
+        tied = np.flatnonzero(dist[:, k] == dist[:, k - 1])
+        dist, idx = dist[:, :k].copy(), idx[:, :k].copy()
+        if tied.size:
+            wide = min(k + TIE_SLACK, tree.n)
+            d, i = tree.query(queries[tied], k=wide, workers=workers)
+            d, i = d.reshape(tied.size, wide), i.reshape(tied.size, wide)
+            pick = np.lexsort((i, d), axis=-1)[:, :k]
+            dist[tied] = np.take_along_axis(d, pick, axis=1)
+            idx[tied] = np.take_along_axis(i, pick, axis=1)
+    order = np.lexsort((idx, dist), axis=-1)
     return np.take_along_axis(dist, order, axis=1), np.take_along_axis(idx, order, axis=1)
 
 

@@ -114,8 +114,8 @@ def full_residuals(xyz: np.ndarray, k: int, origin: np.ndarray | None = None,
     if rows.size == 0:
         return out
     local = arr - arr.mean(axis=0)
-    out[rows] = studentised_full(terms_of(local, neighbours(relative(arr, origin), k, rows),
-                                          rows))
+    nbr = neighbours(relative(arr, origin), k, rows)
+    out[rows] = studentised_full(terms_of(local, nbr, rows, False))
     return out
 
 

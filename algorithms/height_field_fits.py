@@ -96,12 +96,14 @@ def height_field_fit(uvw: np.ndarray, sel: np.ndarray, cnt: int, up: float, vp: 
 
 
 @njit(cache=True)
-def point_terms(xyz: np.ndarray, nbr_row: np.ndarray, i: int, out: np.ndarray) -> int:
-    """Fits of point i on its neighbours nbr_row (i and entries < 0 skipped): full + 4 halves.
+def point_terms(xyz: np.ndarray, nbr_row: np.ndarray, i: int, out: np.ndarray,
+                halves: bool = True) -> int:
+    """Fits of point i on its neighbours nbr_row (i and entries < 0 skipped): full + 4 halves
+    (the full patch alone without ``halves``).
 
     out (5, 4) receives per fit (residual along the upward normal w, leverage, rms, w's z
-    component), NaN where a half patch holds fewer than MIN_HALF_POINTS points. Returns the
-    number of neighbours used.
+    component), NaN where a half patch holds fewer than MIN_HALF_POINTS points (or is not
+    fitted). Returns the number of neighbours used.
     """
     k = nbr_row.size
     idx = np.empty(k, np.int64)
@@ -141,7 +143,7 @@ def point_terms(xyz: np.ndarray, nbr_row: np.ndarray, i: int, out: np.ndarray) -
     out[0, 2] = s
     out[:, 3] = vec[2, 0]
     half = np.empty(cnt, np.int64)
-    for f in range(4):
+    for f in range(4 if halves else 0):
         axis = f // 2
         sign = 1.0 if f % 2 == 0 else -1.0
         p_coord = pu if axis == 0 else pv
@@ -159,13 +161,14 @@ def point_terms(xyz: np.ndarray, nbr_row: np.ndarray, i: int, out: np.ndarray) -
 
 
 @njit(cache=True, parallel=True)
-def terms_of(xyz: np.ndarray, nbr: np.ndarray, points: np.ndarray) -> np.ndarray:
+def terms_of(xyz: np.ndarray, nbr: np.ndarray, points: np.ndarray,
+             halves: bool = True) -> np.ndarray:
     """point_terms of each of ``points`` (m,) on its row of nbr (m, k): (m, 5, 4) residual,
-    leverage, rms, normal z."""
+    leverage, rms, normal z (the full patch's alone without ``halves``)."""
     m = nbr.shape[0]
     terms = np.full((m, 5, 4), np.nan)
     for r in prange(m):
-        point_terms(xyz, nbr[r], points[r], terms[r])
+        point_terms(xyz, nbr[r], points[r], terms[r], halves)
     return terms
 
 

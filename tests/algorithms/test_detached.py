@@ -242,6 +242,24 @@ def test_ties_at_the_kth_neighbour_go_to_the_first_point():
     assert near[sub[0]].tolist() == idx[0].tolist()
 
 
+def test_nearest_first_matches_sorting_every_distance():
+    """The k nearest by (distance, index), from all distances, on a grid with duplicates (ties
+    at the k-th distance everywhere) and on scattered points (none)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    g = np.arange(0.0, 8.0, 0.5)
+    grid = np.c_[np.repeat(g, g.size), np.tile(g, g.size), np.zeros(g.size ** 2)]
+    grid = np.vstack([grid, grid[rng.choice(len(grid), 40)]])[rng.permutation(len(grid) + 40)]
+    for xyz in (grid, rng.uniform(0.0, 8.0, (300, 3))):
+        for k in (1, 5, 7):
+            dist, idx = nearest_first(cKDTree(xyz), xyz, k)
+            d = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
+            slow = np.array([np.lexsort((np.arange(len(xyz)), row))[:k] for row in d])
+            assert idx.tolist() == slow.tolist()
+            np.testing.assert_allclose(dist, np.take_along_axis(d, slow, axis=1), atol=1e-12)
+
+
 def test_floor_matches_explicit_least_squares():
     xyz = rough_terrain(13, 500)
     reference = np.arange(0, 500, 2)
