@@ -12,7 +12,8 @@ through the command line first: the ratio column compares each run with it.
 
 Peak memory is the largest resident set a process had, sampled every 0.2 s (psutil) over the
 command's or the service's whole process tree (for the service: the API, Redis, the Celery main
-process and its pool processes, which run the job and its tiles).
+process and its pool processes, which run the job and its tiles). "Cores busy" is the CPU time
+of that tree (user + system) over the wall time: how much of the machine a run kept busy.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ class Peaks:
 
     root: int
     rss: dict[int, tuple[str, int]] = field(default_factory=dict)
+    cpu: dict[int, float] = field(default_factory=dict)  # pid -> CPU seconds (user + system)
     stop: threading.Event = field(default_factory=threading.Event)
 
     def sample(self) -> None:
@@ -57,8 +59,10 @@ class Peaks:
             try:
                 name = " ".join([p.name(), *p.cmdline()[1:4]])
                 rss = p.memory_info().rss
+                times = p.cpu_times()
             except psutil.Error:
                 continue
+            self.cpu[p.pid] = max(self.cpu.get(p.pid, 0.0), times.user + times.system)
             old = self.rss.get(p.pid, ("", 0))[1]
             self.rss[p.pid] = (name, max(old, rss))
 
@@ -75,6 +79,11 @@ class Peaks:
     def __exit__(self, *exc: object) -> None:
         self.stop.set()
         self.thread.join()
+
+    def cpu_seconds(self) -> float:
+        """CPU time of the tree's processes as last sampled (a process that ended between two
+        samples loses at most 0.2 s)."""
+        return sum(self.cpu.values())
 
     def largest(self) -> tuple[str, int]:
         return max(self.rss.values(), key=lambda v: v[1], default=("", 0))
@@ -211,9 +220,10 @@ def row(label: str, points: int, res: dict, base_seconds: float | None,
     name, rss = res["peaks"].largest()
     ratio = "" if base_seconds is None else f"{res['wall'] / base_seconds:.1f}x"
     roles = ", ".join(f"{k} {v / 1e9:.2f}" for k, v in sorted(res["peaks"].by_role().items()))
+    cores = res["peaks"].cpu_seconds() / res["wall"]
     return (f"| {label} | {points:,} | {res['wall']:.1f} | {points / res['wall']:,.0f} | "
-            f"{rss / 1e9:.2f} | {roles} | {ratio} (points {points / base_points:.1f}x) | "
-            f"{res['mode']} |")
+            f"{cores:.2f} | {rss / 1e9:.2f} | {roles} | {ratio} (points "
+            f"{points / base_points:.1f}x) | {res['mode']} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -239,9 +249,9 @@ def main(argv: list[str] | None = None) -> int:
         part.rename(big)
     print(f"cloud: {big} ({args.points:,} points, {big.stat().st_size / 1e6:,.0f} MB); "
           f"base {base_points:,} points; params {args.params or 'default pipeline'}")
-    print("| run | points | seconds | points/s | peak RSS GB (largest process) | peak RSS GB "
-          "by process | time vs base | mode |")
-    print("| --- | ---: | ---: | ---: | ---: | --- | ---: | --- |")
+    print("| run | points | seconds | points/s | cores busy | peak RSS GB (largest process) | "
+          "peak RSS GB by process | time vs base | mode |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | --- |")
     ref = run_cli(base, folder / "base_out.las", args.params, args.tile_size)
     print(row("CLI, base cloud", base_points, ref, None, base_points), flush=True)
     res = run_cli(big, folder / "out.las", args.params, args.tile_size)
