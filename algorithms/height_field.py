@@ -292,13 +292,19 @@ def detect_height_field(
     local = arr - arr.mean(axis=0)
     grid_local = relative(arr, origin)  # the same coordinates in a tile: the same neighbours
     rows = np.arange(n) if wanted is None else np.flatnonzero(wanted)
-    terms = terms_of(local, neighbours(grid_local, k, rows), rows)
+    nbr = neighbours(grid_local, k, rows)
+    terms = terms_of(local, nbr, rows, False)  # full patches first: sigma comes from them
     if sigma == "auto":
         sig, source = estimate_sigma(terms), "auto"
     else:
         sig, source = float(sigma), "given"
     if not sig > 0:  # a perfect synthetic surface: every residual is rounding
         sig = float(np.finfo(float).eps * max(1.0, float(np.abs(local).max())))
+    # the half patches count only where the full patch is not one surface (scores_from_terms)
+    edge = ~(terms[:, 0, 2] <= HALF_GATE * sig)
+    if edge.any():
+        terms[edge] = terms_of(local, nbr[edge], rows[edge])
+    del nbr
     score = np.full(n, np.nan)
     score[rows] = scores_from_terms(terms, sig, float(rms_weight),
                                     ONE_SIDED_NZ if one_sided else 2.0, HALF_GATE, MAX_LEVERAGE)

@@ -190,6 +190,20 @@ def mirror_scene(rng: np.random.Generator) -> tuple[np.ndarray, int, int]:
     return np.vstack([road, img, wall]), len(road), len(road) + n_img
 
 
+def test_half_patches_fitted_only_where_scores_read_them():
+    """Scores equal those from every point's full and half patches (the slow way)."""
+    rng = np.random.default_rng(13)
+    xyz, _, _ = mirror_scene(rng)
+    local = xyz - xyz.mean(axis=0)
+    terms = all_terms(local, neighbours(xyz - xyz.min(axis=0), 24))
+    for sigma in (0.001, 0.003, 0.02):
+        expected = scores_from_terms(terms, sigma, 0.5, ONE_SIDED_NZ, 2.0, 10.0)
+        got = detect_height_field(xyz, sigma=sigma, low=False)
+        np.testing.assert_allclose(got.score, expected, rtol=1e-9, atol=0.0)
+    one_surface = terms[:, 0, 2] <= 2.0 * np.array([[0.001], [0.02]])
+    assert not one_surface[0].all() and one_surface[1].all()  # halves needed, then none
+
+
 def test_wanted_points_get_the_scores_of_the_whole_run():
     rng = np.random.default_rng(12)
     xyz, first_img, _ = mirror_scene(rng)
