@@ -83,15 +83,26 @@ def studentised_full(terms: np.ndarray) -> np.ndarray:
     return terms[:, 0, 0] / np.sqrt(1.0 + terms[:, 0, 1])
 
 
-def estimate_sigma(terms: np.ndarray) -> float:
-    """Robust sigma (m): MAD of the full-patch studentised residuals (evenly strided sample)."""
-    return sigma_of_residuals([studentised_full(terms)])
+def estimate_sigma(terms: np.ndarray, sample: np.ndarray | None = None) -> float:
+    """Robust sigma (m): MAD of the full-patch studentised residuals of the rows ``sample``
+    (bool, default all; :func:`sigma_sample`)."""
+    residuals = studentised_full(terms)
+    return sigma_of_residuals([residuals if sample is None else residuals[sample]])
+
+
+def sigma_sample(position: np.ndarray, file_points: int) -> np.ndarray:
+    """(n,) bool: the points ``sigma="auto"`` is estimated from, by their ``position`` in a
+    file of ``file_points`` points: every ``max(1, file_points // SIGMA_SAMPLE)``-th. Chosen
+    before any residual is known, so a run tile by tile fits the full patches of these points
+    alone in its round over the file, and gets the whole run's sample."""
+    return position % max(1, file_points // SIGMA_SAMPLE) == 0
 
 
 def sigma_of_residuals(parts: Iterable[np.ndarray], sample: int = SIGMA_SAMPLE) -> float:
-    """:func:`estimate_sigma` of the residuals of all the points, given in order as ``parts``
-    (NaN: untested), reading each part twice and keeping only the sample: the MAD of every
-    ``max(1, finite // sample)``-th finite residual. ``parts`` is called on twice (a list, or
+    """:func:`estimate_sigma` of the residuals given in order as ``parts`` (NaN: untested or
+    not in the sample), reading each part twice and keeping only the sample: the MAD of every
+    ``max(1, finite // sample)``-th finite residual (all of them when they come from
+    :func:`sigma_sample`, at most 2 x ``sample``). ``parts`` is called on twice (a list, or
     memory-mapped pieces of a large array)."""
     r = strided_sample(parts, sample)
     if r.size == 0:
@@ -250,6 +261,7 @@ def detect_height_field(
     voxel: float | str = "auto",
     origin: np.ndarray | None = None,
     wanted: np.ndarray | None = None,
+    sample: np.ndarray | None = None,
 ) -> DetectorResult:
     """Edge-aware leave-one-out height-field outlier test (see the module docstring).
 
@@ -270,6 +282,8 @@ def detect_height_field(
         point in the same voxels and give it the same neighbours.
     wanted : (n,) bool, the points whose scores are read (default all; a tile's core): the
         patches of the others are not fitted (NaN), and ``sigma="auto"`` comes from these.
+    sample : (n,) bool, the points whose full-patch residuals ``sigma="auto"`` is estimated
+        from (default all; :func:`sigma_sample` draws them from a file).
 
     Returns
     -------
@@ -295,7 +309,7 @@ def detect_height_field(
     nbr = neighbours(grid_local, k, rows)
     terms = terms_of(local, nbr, rows, False)  # full patches first: sigma comes from them
     if sigma == "auto":
-        sig, source = estimate_sigma(terms), "auto"
+        sig, source = estimate_sigma(terms, None if sample is None else sample[rows]), "auto"
     else:
         sig, source = float(sigma), "given"
     if not sig > 0:  # a perfect synthetic surface: every residual is rounding

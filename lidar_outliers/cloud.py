@@ -40,6 +40,12 @@ class Cloud:
     wanted : (n,) bool or None
         The points whose results are read, when that is not all of them (a tile's core):
         detectors that can may leave the others untested. A subset keeps its points' rows.
+    position : (n,) int64 or None
+        Each point's position in the file (None: its row, the cloud being the file in order);
+        a subset and a tile keep them, so a sample of the file drawn by position is the same
+        in every part of it.
+    file_points : int or None
+        Points in the file (None: this cloud's), kept by a subset.
     """
 
     xyz: np.ndarray
@@ -52,6 +58,8 @@ class Cloud:
     anchor: np.ndarray | None = None
     known: dict[str, np.ndarray] | None = None
     wanted: np.ndarray | None = None
+    position: np.ndarray | None = None
+    file_points: int | None = None
 
     @classmethod
     def from_arrays(
@@ -103,7 +111,16 @@ class Cloud:
             anchor=self.anchor,
             known=None if self.known is None else {k: v[index] for k, v in self.known.items()},
             wanted=None if self.wanted is None else self.wanted[index],
+            position=self.positions()[index], file_points=self.points_in_file(),
         )
+
+    def positions(self) -> np.ndarray:
+        """(n,) each point's position in the file."""
+        return np.arange(len(self)) if self.position is None else self.position
+
+    def points_in_file(self) -> int:
+        """The number of points in the file the cloud comes from."""
+        return len(self) if self.file_points is None else self.file_points
 
     def with_trajectory(self, trajectory: np.ndarray) -> Cloud:
         """The same points with ``trajectory`` ((m, 4): time, then x, y, z in file coordinates)

@@ -316,7 +316,8 @@ def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = 
         point_source_id=np.ascontiguousarray(rec["point_source_id"]),
         classification=np.ascontiguousarray(rec["classification"]),
         intensity=np.ascontiguousarray(rec["intensity"]), trajectory=trajectory,
-        anchor=tiles.anchor,
+        anchor=tiles.anchor, position=np.ascontiguousarray(rec["index"]),
+        file_points=tiles.points,
     )
 
 

@@ -25,7 +25,15 @@ def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
     from algorithms.height_field import detect_height_field
 
     return detect_height_field(cloud.xyz, **params.as_dict(), origin=grid_origin(cloud),
-                               wanted=cloud.wanted)
+                               wanted=cloud.wanted, sample=sigma_points(cloud))
+
+
+def sigma_points(cloud: Cloud) -> np.ndarray:
+    """(n,) bool: the points of the file ``sigma: auto`` is estimated from
+    (:func:`algorithms.height_field.sigma_sample`, by their position in the file)."""
+    from algorithms.height_field import sigma_sample
+
+    return sigma_sample(cloud.positions(), cloud.points_in_file())
 
 
 def reach(cloud: Cloud, params: HeightFieldParameters, where: np.ndarray,
@@ -35,6 +43,8 @@ def reach(cloud: Cloud, params: HeightFieldParameters, where: np.ndarray,
     if pending_estimate(params) == "voxel":
         return np.where(where, LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[1],
                         0.0)
+    if pending_estimate(params) == "sigma":  # only the sample's residuals are computed
+        where = where & sigma_points(cloud)
     return tile_reach(cloud.xyz, params, where, grid_origin(cloud), allowed)
 
 
@@ -43,7 +53,11 @@ def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
 
     if pending_estimate(params) == "voxel":
         return LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
-    return estimate_values(cloud.xyz, params, grid_origin(cloud), cloud.wanted)
+    wanted = cloud.wanted
+    if pending_estimate(params) == "sigma":  # the residuals of the sample alone
+        sample = sigma_points(cloud)
+        wanted = sample if wanted is None else wanted & sample
+    return estimate_values(cloud.xyz, params, grid_origin(cloud), wanted)
 
 
 def pin(params: HeightFieldParameters,

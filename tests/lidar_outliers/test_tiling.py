@@ -250,6 +250,29 @@ def test_transient_tiled_equals_whole_cloud(street, tmp_path, pipeline):
     assert transient["info"]["scan_lines"].startswith("in file order")
 
 
+@pytest.mark.parametrize("where", ["scene", "street"])
+def test_sigma_sampled_by_file_position_tiled_equals_whole_cloud(scene, street, tmp_path,
+                                                                 monkeypatch, where):
+    """``sigma: auto`` from every m-th point of the file (a sample of about 300 points here):
+    the tiles fit the full patches of those alone and get the whole run's sigma, also when
+    the stage before is settled in the same round."""
+    import algorithms.height_field as hf
+
+    monkeypatch.setattr(hf, "SIGMA_SAMPLE", 300)
+    path, size = (scene, TILE) if where == "scene" else (street, STREET_TILE)
+    pipeline = ([{"detector": "height_field", "low": False}] if where == "scene"
+                else [STREET_TRANSIENT, {"detector": "height_field"}])
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    stats_whole = process_file(path, whole, {"pipeline": pipeline})
+    stats = process_file(path, tiled, {"pipeline": pipeline}, tile_size=size)
+    _assert_same(_results(whole), _results(tiled), [s["detector"] for s in pipeline])
+    sw, st = stats_whole["stages"][-1]["info"], stats["stages"][-1]["info"]
+    assert st["sigma"] == pytest.approx(sw["sigma"], rel=1e-9)
+    monkeypatch.setattr(hf, "SIGMA_SAMPLE", 10**9)  # every point: another sigma
+    every = process_file(path, tmp_path / "every.las", {"pipeline": pipeline})
+    assert every["stages"][-1]["info"]["sigma"] != sw["sigma"]
+
+
 def test_transient_tiled_equals_whole_cloud_in_any_point_order(tmp_path):
     """Records not in time order: the scan-line neighbours come from a sort over the file."""
     street = street_scene(tmp_path / "shuffled.las", shuffled=True)
