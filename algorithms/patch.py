@@ -131,19 +131,27 @@ def nearest_in_order(tree: cKDTree, xyz: np.ndarray, query: np.ndarray, k: int) 
     dist, nbr = tree.query(xyz[query], k=kk, workers=-1)
     dist, nbr = dist.reshape(len(query), kk), nbr.reshape(len(query), kk)
     if kk > k:
-        for row in np.flatnonzero(dist[:, k - 1] == dist[:, k]):
-            nbr[row, :k] = _ties_by_index(tree, xyz, query[row], dist[row, k - 1], k)
+        rows = np.flatnonzero(dist[:, k - 1] == dist[:, k])
+        if rows.size:
+            nbr[rows, :k] = _ties_by_index(tree, xyz, query[rows], dist[rows, k - 1], k)
     nbr = nbr[:, :k]
     rest = np.sort(nbr[:, 1:], axis=1)
     return np.ascontiguousarray(np.column_stack([nbr[:, 0], rest]))
 
 
-def _ties_by_index(tree: cKDTree, xyz: np.ndarray, i: int, radius: float, k: int
-                   ) -> np.ndarray:
-    """The k nearest of point i, nearest first, equal distances by index."""
-    near = np.asarray(tree.query_ball_point(xyz[i], radius * (1 + 1e-9)), dtype=np.int64)
-    d2 = np.sum((xyz[near] - xyz[i]) ** 2, axis=1)
-    return near[np.lexsort((near, d2))][:k]
+def _ties_by_index(tree: cKDTree, xyz: np.ndarray, points: np.ndarray, radius: np.ndarray,
+                   k: int) -> np.ndarray:
+    """(m, k) the k nearest of each of ``points``, nearest first, equal distances by index;
+    ``radius`` (m,) is each one's k-th distance. One ball query and one sort for all of them
+    (mobile clouds tie often: points on a scan grid, a vehicle standing still)."""
+    near = tree.query_ball_point(xyz[points], radius * (1 + 1e-9), workers=-1)
+    sizes = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+    flat = np.concatenate(near).astype(np.int64)
+    row = np.repeat(np.arange(len(points)), sizes)
+    d2 = np.sum((xyz[flat] - xyz[points][row]) ** 2, axis=1)
+    flat = flat[np.lexsort((flat, d2, row))]  # by row, then distance, then index
+    first = np.cumsum(sizes) - sizes
+    return flat[first[:, None] + np.arange(k)]
 
 
 def detect_patch(

@@ -299,8 +299,11 @@ def _solve(m: np.ndarray, r: np.ndarray) -> bool:
 
 @njit(cache=True)
 def _lu_factor(m: np.ndarray, piv: np.ndarray) -> bool:
-    """In-place LU factorisation with partial pivoting of the square m; row swaps into piv."""
-    s = m.shape[0]
+    """In-place LU factorisation with partial pivoting of the 10 x 10 m; row swaps into piv.
+
+    The size is the constant N_PARAMS so that the compiler unrolls the short loops (a quarter
+    of the algebraic start's time)."""
+    s = N_PARAMS
     for col in range(s):
         p = col
         best = abs(m[col, col])
@@ -326,8 +329,8 @@ def _lu_factor(m: np.ndarray, piv: np.ndarray) -> bool:
 
 @njit(cache=True)
 def _lu_solve(lu: np.ndarray, piv: np.ndarray, x: np.ndarray) -> None:
-    """Solve with the factors of :func:`_lu_factor`; x (s,) is the right-hand side, overwritten."""
-    s = lu.shape[0]
+    """Solve with the factors of :func:`_lu_factor`; x (10,) is the right-hand side, overwritten."""
+    s = N_PARAMS
     for i in range(s):
         p = piv[i]
         if p != i:
@@ -345,8 +348,9 @@ def _lu_solve(lu: np.ndarray, piv: np.ndarray, x: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> None:
-    """Unit eigenvector of the smallest eigenvalue of B^T B (active rows), into ``out`` (10,).
+def _algebraic_start(moments: np.ndarray, out: np.ndarray) -> None:
+    """Unit eigenvector of the smallest eigenvalue of B^T B (active rows), into ``out`` (10,),
+    from the 35 unweighted monomial sums of the active rows (:func:`weighted_moments`).
 
     Inverse iteration with one LU factorisation (no LAPACK call per patch): the smallest
     eigenvalue of B^T B is the algebraic fit's residual and lies well below the next one
@@ -357,13 +361,11 @@ def _algebraic_start(xyz: np.ndarray, active: np.ndarray, out: np.ndarray) -> No
     iteration with the weighted N) goes on from there. np.linalg.eigh is the fallback only when
     B^T B cannot be factorised.
     """
-    acc = np.empty(_N_MONO)
-    weighted_moments(xyz, active.astype(np.float64), _N_MONO, acc)
     btb = np.empty((N_PARAMS, N_PARAMS))
     trace = 0.0
     for p in range(N_PARAMS):
         for q in range(N_PARAMS):
-            btb[p, q] = acc[_N_INDEX[p, q]]
+            btb[p, q] = moments[_N_INDEX[p, q]]
         trace += btb[p, p]
     lu = btb.copy()
     for p in range(N_PARAMS):
@@ -418,7 +420,6 @@ def _adjust(
     var: np.ndarray,
     a: np.ndarray,
     m: np.ndarray,
-    m_copy: np.ndarray,
     rhs: np.ndarray,
     w: np.ndarray,
     p_w: np.ndarray,
@@ -428,12 +429,13 @@ def _adjust(
 ) -> bool:
     """One adjustment linearised at ``a`` (10,): da into rhs[:10, 0]; False if it cannot be solved.
 
-    Leaves the bordered matrix in ``m_copy`` and w_i (eq. 24), p_i = 1/sigma_i^2 (eq. 30) of the
-    active rows in ``w`` and ``p_w``, for the residuals and cofactors of the last adjustment.
+    Leaves the 35 monomial sums of N in acc[:35] (:func:`_bordered_matrix` rebuilds the bordered
+    matrix from them and ``a``) and w_i (eq. 24), p_i = 1/sigma_i^2 (eq. 30) of the active rows
+    in ``w`` and ``p_w``, for the residuals and cofactors of the last adjustment.
     N = B^T P B and u = B^T P w are summed block by block from the points' powers
-    (:func:`_block_moments`). Scratch: ``powers`` (3, 5, _BLOCK), which holds the powers of all
-    points already when n <= _BLOCK (the caller computes them once per fit), ``block_w``
-    (2, _BLOCK) and ``acc`` (45,).
+    (:func:`_block_moments`). Scratch: ``m`` (11, 11); ``powers`` (3, 5, _BLOCK), which holds
+    the powers of all points already when n <= _BLOCK (the caller computes them once per fit),
+    ``block_w`` (2, _BLOCK) and ``acc`` (45,).
     """
     acc[:] = 0.0
     n_mono, u = acc[:_N_MONO], acc[_N_MONO:]
@@ -442,40 +444,76 @@ def _adjust(
         nb = min(_BLOCK, xyz.shape[0] - start)
         if xyz.shape[0] > _BLOCK:
             _block_powers(xyz, start, nb, powers)
-        for i in range(nb):
-            if not active[start + i]:
-                p_b[i] = 0.0
-                pw_b[i] = 0.0
-                continue
-            x, y, z = powers[0, 1, i], powers[1, 1, i], powers[2, 1, i]
-            wi = (
-                a[0] * powers[0, 2, i] + a[1] * powers[1, 2, i] + a[2] * powers[2, 2, i]
-                + a[3] * x * y + a[4] * x * z + a[5] * y * z + a[6] * x + a[7] * y + a[8] * z
-                + a[9]
-            )  # fmt: skip  # eq. 24: F(a0, x_i)
-            ax, ay, az = gradient(a, x, y, z)
-            s2 = equivalent_variance(ax, ay, az, var[0], var[1], var[2])
-            if not (s2 > 0.0 and s2 < math.inf):
-                return False
-            pi = 1.0 / s2
-            w[start + i] = wi
-            p_w[start + i] = pi
-            p_b[i] = pi
-            pw_b[i] = pi * wi
+        if not _block_weights(
+            powers, nb, active[start:], var, a, w[start:], p_w[start:], p_b, pw_b
+        ):
+            return False
         _block_moments(powers, p_b, nb, _N_MONO, n_mono)  # N as 35 weighted monomial sums
         _block_moments(powers, pw_b, nb, N_PARAMS, u)  # B^T P w: eq. 23's entries are the first 10
+    _bordered_matrix(n_mono, a, m)
     aa = 0.0
     for p in range(N_PARAMS):
-        for q in range(N_PARAMS):
-            m[p, q] = acc[_N_INDEX[p, q]]
-        m[p, N_PARAMS] = a[p]
-        m[N_PARAMS, p] = a[p]
         rhs[p, 0] = -u[_N_INDEX[p, 9]]
         aa += a[p] * a[p]
-    m[N_PARAMS, N_PARAMS] = 0.0
     rhs[N_PARAMS, 0] = 0.5 * (1.0 - aa)  # eq. 19 linearised: 2 a0.da = 1 - a0.a0
-    m_copy[:, :] = m
     return _solve(m, rhs)
+
+
+@njit(cache=True)
+def _bordered_matrix(n_mono: np.ndarray, a: np.ndarray, m: np.ndarray) -> None:
+    """The bordered matrix [N a; a^T 0] (11, 11) into ``m``, from the 35 monomial sums of N and
+    the parameters a (10,) the adjustment is linearised at."""
+    for p in range(N_PARAMS):
+        for q in range(N_PARAMS):
+            m[p, q] = n_mono[_N_INDEX[p, q]]
+        m[p, N_PARAMS] = a[p]
+        m[N_PARAMS, p] = a[p]
+    m[N_PARAMS, N_PARAMS] = 0.0
+
+
+@njit(cache=True, error_model="numpy")  # 1/0 of an inactive row: inf, unused, not an exception
+def _block_weights(
+    powers: np.ndarray,
+    nb: int,
+    active: np.ndarray,
+    var: np.ndarray,
+    a: np.ndarray,
+    w: np.ndarray,
+    p_w: np.ndarray,
+    p_b: np.ndarray,
+    pw_b: np.ndarray,
+) -> bool:
+    """w_i = F(a, x_i) (eq. 24) and p_i = 1/sigma_i^2 (eqs. 25-27, 30) of the nb points of one
+    block into ``w`` and ``p_w``, and the weights of N and u into ``p_b`` (p_i) and ``pw_b``
+    (p_i w_i), 0 for inactive rows; False if an active row's sigma_i^2 is zero or not finite.
+
+    Written as loops without branches over a's entries read once, so that the compiler
+    vectorises them; each number is the same expression, evaluated in the same order, as for
+    one point at a time (:func:`gradient`, :func:`equivalent_variance`).
+    """
+    a0, a1, a2, a3, a4 = a[0], a[1], a[2], a[3], a[4]
+    a5, a6, a7, a8, a9 = a[5], a[6], a[7], a[8], a[9]
+    vx, vy, vz = var[0], var[1], var[2]
+    x, y, z = powers[0, 1], powers[1, 1], powers[2, 1]
+    xx, yy, zz = powers[0, 2], powers[1, 2], powers[2, 2]
+    for i in range(nb):
+        w[i] = (
+            a0 * xx[i] + a1 * yy[i] + a2 * zz[i] + a3 * x[i] * y[i] + a4 * x[i] * z[i]
+            + a5 * y[i] * z[i] + a6 * x[i] + a7 * y[i] + a8 * z[i] + a9
+        )  # fmt: skip
+        ax = 2.0 * a0 * x[i] + a3 * y[i] + a4 * z[i] + a6
+        ay = 2.0 * a1 * y[i] + a3 * x[i] + a5 * z[i] + a7
+        az = 2.0 * a2 * z[i] + a4 * x[i] + a5 * y[i] + a8
+        p_w[i] = ax * ax * vx + ay * ay * vy + az * az * vz  # sigma_i^2 until the last loop
+    for i in range(nb):
+        if active[i] and not (p_w[i] > 0.0 and p_w[i] < math.inf):
+            return False
+    for i in range(nb):
+        pi = 1.0 / p_w[i]
+        p_w[i] = pi
+        p_b[i] = pi if active[i] else 0.0
+        pw_b[i] = pi * w[i] if active[i] else 0.0
+    return True
 
 
 # Fit outcome codes (QuadricFit.status): why a fit gives no T_i, for the detectors' statistics.
@@ -563,13 +601,21 @@ def stage_budget(max_iter: int, stage: int, accelerate: bool) -> int:
 
 @njit(cache=True)
 def _anderson(
-    a: np.ndarray, da: np.ndarray, dx: np.ndarray, dr: np.ndarray, count: int, out: np.ndarray
+    a: np.ndarray,
+    da: np.ndarray,
+    dx: np.ndarray,
+    dr: np.ndarray,
+    count: int,
+    out: np.ndarray,
+    g_buf: np.ndarray,
+    r_buf: np.ndarray,
 ) -> None:
     """Anderson-accelerated iterate from a, its step da = G(a) - a and the last ``count``
     differences of iterates dx and of steps dr (rows): out = a + da - (dX + dR) gamma, gamma the
-    least-squares solution of dR gamma ~ da (regularised normal equations)."""
-    g = np.empty((count, count))
-    r = np.empty((count, 1))
+    least-squares solution of dR gamma ~ da (regularised normal equations). Scratch: ``g_buf``
+    (ANDERSON_DEPTH, ANDERSON_DEPTH), ``r_buf`` (ANDERSON_DEPTH, 1)."""
+    g = g_buf[:count, :count]
+    r = r_buf[:count]
     trace = 0.0
     for i in range(count):
         acc = 0.0
@@ -624,29 +670,37 @@ def _fit_one(
         return math.nan, 0, TOO_FEW_POINTS
     if _nearly_collinear(xyz, active):
         return math.nan, 0, COLLINEAR
+    powers = np.empty((3, 5, _BLOCK))
+    block_w = np.empty((2, _BLOCK))
+    acc = np.empty(_N_MONO + N_PARAMS)
+    if n <= _BLOCK:
+        _block_powers(xyz, 0, n, powers)  # fixed for the whole fit
+        for i in range(n):
+            block_w[0, i] = 1.0 if active[i] else 0.0
+        acc[:_N_MONO] = 0.0
+        _block_moments(powers, block_w[0], n, _N_MONO, acc)  # as weighted_moments does
+    else:
+        weighted_moments(xyz, active.astype(np.float64), _N_MONO, acc)
     start = np.empty(N_PARAMS)
-    _algebraic_start(xyz, active, start)
+    _algebraic_start(acc, start)
 
     s = N_PARAMS + 1
     m = np.empty((s, s))
-    m_last = np.empty((s, s))
     rhs = np.empty((s, 1))
     da = np.zeros(N_PARAMS)
     a_prev = np.empty(N_PARAMS)
     da_prev = np.empty(N_PARAMS)
+    a_lin = np.empty(N_PARAMS)  # where the last adjustment was linearised
     dx = np.empty((ANDERSON_DEPTH, N_PARAMS))
     dr = np.empty((ANDERSON_DEPTH, N_PARAMS))
+    g_buf = np.empty((ANDERSON_DEPTH, ANDERSON_DEPTH))
+    r_buf = np.empty((ANDERSON_DEPTH, 1))
     w = np.empty(n)
     p_w = np.empty(n)
-    powers = np.empty((3, 5, _BLOCK))
-    if n <= _BLOCK:
-        _block_powers(xyz, 0, n, powers)  # fixed for the whole fit
-    block_w = np.empty((2, _BLOCK))
-    acc = np.empty(_N_MONO + N_PARAMS)
 
     iterations = 0
     status = NOT_CONVERGED
-    solved = False  # the last adjustment could be solved (m_last, w, p_w, da are its)
+    solved = False  # the last adjustment could be solved (a_lin, acc, w, p_w, da are its)
     first_stage = 0 if accelerate else 1
     for stage in range(first_stage, 1 + len(DAMPING)):
         a[:] = start
@@ -659,7 +713,8 @@ def _fit_one(
         guard = 0.5
         for _ in range(budget):
             iterations += 1
-            solved = _adjust(xyz, active, var, a, m, m_last, rhs, w, p_w, powers, block_w, acc)
+            a_lin[:] = a
+            solved = _adjust(xyz, active, var, a, m, rhs, w, p_w, powers, block_w, acc)
             if not solved:
                 break
             step = 0.0
@@ -705,7 +760,7 @@ def _fit_one(
                 for q in range(N_PARAMS):
                     a[q] += da[q]
             else:
-                _anderson(a_prev, da_prev, dx[:count], dr[:count], count, a)
+                _anderson(a_prev, da_prev, dx[:count], dr[:count], count, a, g_buf, r_buf)
         if status == CONVERGED:
             break
     if not solved:
@@ -732,7 +787,8 @@ def _fit_one(
             design_row(xyz[i, 0], xyz[i, 1], xyz[i, 2], b)
             for q in range(N_PARAMS):
                 cols[q, i] = b[q]
-    if not _solve(m_last, cols):
+    _bordered_matrix(acc, a_lin, m)
+    if not _solve(m, cols):
         return math.nan, iterations, SINGULAR
     for i in range(n_rows):
         if not active[i]:

@@ -277,6 +277,36 @@ def test_weighted_moments_match_a_plain_sum(n):
     np.testing.assert_allclose(first10[:10], out[:10], rtol=1e-12, atol=1e-12)
 
 
+
+def test_block_weights_equal_the_equations_point_by_point():
+    # The vectorised w_i (eq. 24) and p_i (eq. 30) bit for bit against the same expressions
+    # evaluated one point at a time; inactive rows weigh nothing and do not fail the block.
+    from algorithms.quadric import _block_powers, _block_weights, equivalent_variance, gradient
+
+    rng = np.random.default_rng(3)
+    n = 40
+    xyz = rng.normal(0.0, 0.3, (n, 3))
+    active = rng.random(n) < 0.8
+    a = rng.normal(size=10)
+    var = np.array([0.004, 0.006, 0.005]) ** 2
+    powers = np.empty((3, 5, 256))
+    _block_powers(xyz, 0, n, powers)
+    w, p_w, p_b, pw_b = (np.full(n, np.nan) for _ in range(4))
+    assert _block_weights(powers, n, active, var, a, w, p_w, p_b, pw_b)
+    for i in range(n):
+        x, y, z = xyz[i]
+        wi = (a[0] * (x * x) + a[1] * (y * y) + a[2] * (z * z) + a[3] * x * y + a[4] * x * z
+              + a[5] * y * z + a[6] * x + a[7] * y + a[8] * z + a[9])  # fmt: skip
+        ax, ay, az = gradient(a, x, y, z)
+        pi = 1.0 / equivalent_variance(ax, ay, az, var[0], var[1], var[2])
+        assert w[i] == wi and p_w[i] == pi
+        assert p_b[i] == (pi if active[i] else 0.0)
+        assert pw_b[i] == (pi * wi if active[i] else 0.0)
+    flat = np.zeros(10)
+    flat[9] = 1.0  # F = 1 everywhere: zero gradient, sigma_i^2 = 0
+    assert not _block_weights(powers, n, active, var, flat, w, p_w, p_b, pw_b)
+    assert _block_weights(powers, n, np.zeros(n, dtype=bool), var, flat, w, p_w, p_b, pw_b)
+
 def test_fit_masked_on_a_section_of_several_blocks_matches_slow_reference():
     # Sections are fitted block by block (256 points); 1,000 points with holes span four blocks.
     rng = np.random.default_rng(21)
