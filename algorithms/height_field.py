@@ -24,7 +24,8 @@ false alarms because one smooth surface cannot follow an edge. Here, for every p
    on ground-like fits (upward normal within ~45 degrees of vertical, ``one_sided``) only
    residuals above the surface count: early returns lie between the scanner and the ground;
 5. the score is the smallest term over the usable fits, in units of one ``sigma`` for the whole
-   cloud (``"auto"``: the MAD of all full-patch studentised residuals, so no error is guessed).
+   cloud (``"auto"``: the MAD of the full-patch studentised residuals, of a sample of the file's
+   points chosen by position with ``sample``, so no error is guessed).
 
 6. *under the lowest surface* (``low``): a return behind the surface its beam crossed is a
    multi-path (mirror) return: a puddle or a window reflects the beam, and the range of the
