@@ -243,8 +243,10 @@ def detect_patch(
 def untested_reasons() -> dict[str, int]:
     """Untested points by reason, all zero: ``did_not_converge`` (the iteration of eqs. 20-29 did
     not reach the tolerance in ``FIT_MAX_ITER`` adjustments), ``degenerate_geometry`` (nearly
-    collinear points, singular normal equations, or a T_i beyond the bound sqrt(n - 9) that
-    cancellation in q_vv produced) and ``too_few_points`` (fewer points than the fit needs)."""
+    collinear points, singular normal equations, a T_i beyond the bound sqrt(n - 9) that
+    cancellation in q_vv produced, or a fit through every point:
+    :data:`algorithms.quadric.EXACT_FIT_SIGMA0`) and ``too_few_points`` (fewer points than the
+    fit needs)."""
     return {"did_not_converge": 0, "degenerate_geometry": 0, "too_few_points": 0}
 
 

@@ -68,6 +68,12 @@ N_PARAMS = 10
 DOF_LOSS = 9
 #: Relative rounding allowed above the bound T_i <= sqrt(n - 9) before a T_i is distrusted.
 _T_BOUND_SLACK = 1e-6
+#: sigma_0 (the a-posteriori standard deviation of unit weight, eq. 30's weights) at or below
+#: which a fit holds its points exactly: a quadric through every point to within a millionth
+#: of their stated noise (points on two coordinate-rounding levels 1 mm apart make a pair of
+#: planes, which eq. 18 includes, with sigma_0 ~ 1e-18). Its T_i is rounding noise divided by
+#: rounding noise, so the points are left untested.
+EXACT_FIT_SIGMA0 = 1e-6
 
 
 @dataclass
@@ -149,10 +155,12 @@ def t_statistic(v: float, sigma0: float, q_vv: float, redundancy: int) -> float:
     """T_i of eq. 31: |v_i| / (sigma_0 sqrt(q_vv_i)); NaN when it cannot be trusted.
 
     In exact arithmetic T_i <= sqrt(redundancy) (v_i^2 / q_vv_i can never exceed v^T P v). A
-    larger value, or q_vv / sigma_0 not positive, means q_vv = 1/p_i - B_i Q_aa B_i^T was lost
-    to cancellation (a nearly degenerate patch): the point is left untested instead of flagged.
+    larger value, or q_vv not positive, means q_vv = 1/p_i - B_i Q_aa B_i^T was lost to
+    cancellation (a nearly degenerate patch), and a sigma_0 at or below EXACT_FIT_SIGMA0 means
+    the quadric passes through every point: either way the point is left untested instead of
+    flagged.
     """
-    if q_vv <= 0.0 or sigma0 <= 0.0:
+    if q_vv <= 0.0 or not sigma0 > EXACT_FIT_SIGMA0:
         return math.nan
     t = abs(v) / (sigma0 * math.sqrt(q_vv))
     if t > math.sqrt(redundancy) * (1.0 + _T_BOUND_SLACK):

@@ -252,3 +252,18 @@ def test_too_few_points_and_collinear_patches_are_counted_as_untested():
     res = detect_patch(line, k=40)
     assert res.info["points_untested"]["degenerate_geometry"] == 60
     assert res.info["points_tested"] == 0
+
+
+def test_points_on_two_rounding_levels_are_untested_not_flagged():
+    """A flat road recorded at 1 mm: every point lies on z = 0 or z = 1 mm. A pair of planes (a
+    quadric) holds all of them, sigma_0 vanishes and T_i is rounding noise: untested."""
+    rng = np.random.default_rng(21)
+    xy = np.round(rng.uniform(0.0, 1.5, (800, 2)), 3)
+    z = np.where(rng.random(800) < 0.5, 0.0, 0.001)  # the LAS millimetre
+    res = detect_patch(np.c_[xy, z], k=40, sigma=0.005, alpha=0.001)
+    assert not res.flagged.any()
+    assert res.info["points_untested"]["degenerate_geometry"] == 800
+    # the same road with its true noise is tested
+    noisy = detect_patch(np.c_[xy, rng.normal(0.0, 0.003, 800)], k=40, sigma=0.005, alpha=0.001)
+    assert noisy.info["points_untested"]["degenerate_geometry"] == 0
+    assert noisy.info["points_tested"] >= 0.99 * 800
