@@ -14,6 +14,9 @@ Peak memory is the largest resident set a process had, sampled every 0.2 s (psut
 command's or the service's whole process tree (for the service: the API, Redis, the Celery main
 process and its pool processes, which run the job and its tiles). "Cores busy" is the CPU time
 of that tree (user + system) over the wall time: how much of the machine a run kept busy.
+"Anonymous" is the largest ``RssAnon`` of a process: its memory that is not file pages (the
+per-point columns a tiled run keeps in memory-mapped files count in RSS while their pages are
+cached, but the kernel can drop them).
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ class Peaks:
     root: int
     rss: dict[int, tuple[str, int]] = field(default_factory=dict)
     cpu: dict[int, float] = field(default_factory=dict)  # pid -> CPU seconds (user + system)
+    anon: dict[int, int] = field(default_factory=dict)  # pid -> largest RssAnon, bytes
     stop: threading.Event = field(default_factory=threading.Event)
 
     def sample(self) -> None:
@@ -63,6 +67,7 @@ class Peaks:
             except psutil.Error:
                 continue
             self.cpu[p.pid] = max(self.cpu.get(p.pid, 0.0), times.user + times.system)
+            self.anon[p.pid] = max(self.anon.get(p.pid, 0), anonymous_rss(p.pid))
             old = self.rss.get(p.pid, ("", 0))[1]
             self.rss[p.pid] = (name, max(old, rss))
 
@@ -79,6 +84,10 @@ class Peaks:
     def __exit__(self, *exc: object) -> None:
         self.stop.set()
         self.thread.join()
+
+    def largest_anonymous(self) -> int:
+        """The largest anonymous resident set of any process of the tree (bytes)."""
+        return max(self.anon.values(), default=0)
 
     def cpu_seconds(self) -> float:
         """CPU time of the tree's processes as last sampled (a process that ended between two
@@ -97,6 +106,20 @@ class Peaks:
                     else "detect" if "detect" in name else name.split(" ")[0])
             out[role] = max(out.get(role, 0), rss)
         return out
+
+
+def anonymous_rss(pid: int) -> int:
+    """``RssAnon`` of a process (bytes; Linux, else 0): its resident memory that is not file
+    pages. The rest of its RSS (memory-mapped per-point columns, mapped libraries) is page
+    cache the kernel can drop and read again."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("RssAnon:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
 
 
 def base_cloud(folder: Path) -> Path:
@@ -221,8 +244,9 @@ def row(label: str, points: int, res: dict, base_seconds: float | None,
     ratio = "" if base_seconds is None else f"{res['wall'] / base_seconds:.1f}x"
     roles = ", ".join(f"{k} {v / 1e9:.2f}" for k, v in sorted(res["peaks"].by_role().items()))
     cores = res["peaks"].cpu_seconds() / res["wall"]
+    anon = res["peaks"].largest_anonymous()
     return (f"| {label} | {points:,} | {res['wall']:.1f} | {points / res['wall']:,.0f} | "
-            f"{cores:.2f} | {rss / 1e9:.2f} | {roles} | {ratio} (points "
+            f"{cores:.2f} | {rss / 1e9:.2f} | {anon / 1e9:.2f} | {roles} | {ratio} (points "
             f"{points / base_points:.1f}x) | {res['mode']} |")
 
 
@@ -250,8 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"cloud: {big} ({args.points:,} points, {big.stat().st_size / 1e6:,.0f} MB); "
           f"base {base_points:,} points; params {args.params or 'default pipeline'}")
     print("| run | points | seconds | points/s | cores busy | peak RSS GB (largest process) | "
-          "peak RSS GB by process | time vs base | mode |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | --- |")
+          "of it anonymous, GB | peak RSS GB by process | time vs base | mode |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | --- |")
     ref = run_cli(base, folder / "base_out.las", args.params, args.tile_size)
     print(row("CLI, base cloud", base_points, ref, None, base_points), flush=True)
     res = run_cli(big, folder / "out.las", args.params, args.tile_size)
