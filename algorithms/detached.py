@@ -287,30 +287,24 @@ SPACING_SAMPLE = 100_000
 def nearest_distance(xyz: np.ndarray, wanted: np.ndarray | None = None) -> np.ndarray:
     """(n,) each point's distance to its nearest other point (inf without one): what
     :func:`median_spacing` takes the median of; NaN outside the mask ``wanted`` when given."""
-    from scipy.spatial import cKDTree
-
-    if wanted is None:
-        wanted = np.ones(len(xyz), dtype=bool)
-    out = np.full(len(xyz), np.nan)
-    if wanted.any():
-        dist, _ = cKDTree(xyz).query(xyz[wanted], k=[2])
-        out[wanted] = dist[:, 0]
-    return out
+    return _kth_or_nan(xyz, 2, wanted)
 
 
 def xy_kth_distance(xyz: np.ndarray, k: int = XY_SPACING_K,
                     wanted: np.ndarray | None = None) -> np.ndarray:
     """(n,) each point's XY distance to its k-th nearest other point (inf without one): what
     :func:`xy_spacing` takes the median of; NaN outside the mask ``wanted`` when given."""
-    from scipy.spatial import cKDTree
+    return _kth_or_nan(xyz[:, :2], k + 1, wanted)
+
+
+def _kth_or_nan(points: np.ndarray, k: int, wanted: np.ndarray | None) -> np.ndarray:
+    """(n,) :func:`algorithms.tiles.kth_distance_within` (itself counted first) for the points
+    of ``wanted`` (default all), NaN for the others."""
+    from algorithms.tiles import kth_distance_within
 
     if wanted is None:
-        wanted = np.ones(len(xyz), dtype=bool)
-    out = np.full(len(xyz), np.nan)
-    if wanted.any():
-        dist, _ = cKDTree(xyz[:, :2]).query(xyz[wanted, :2], k=[k + 1])
-        out[wanted] = dist[:, 0]
-    return out
+        wanted = np.ones(len(points), dtype=bool)
+    return np.where(wanted, kth_distance_within(points, k, wanted), np.nan)
 
 
 def strided_median(parts: Iterable[np.ndarray], max_points: int = SPACING_SAMPLE) -> float:
