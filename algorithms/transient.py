@@ -47,6 +47,7 @@ through the points the slabs share (:func:`linked_components`), and every decisi
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -186,13 +187,15 @@ def scan_line_neighbours(gps_time: np.ndarray, source: np.ndarray | None
 
 
 def stream_scan_lines(gps_time: np.ndarray, source: np.ndarray, use: np.ndarray,
-                      before: np.ndarray, after: np.ndarray, chunk: int = 4_000_000) -> bool:
+                      before: np.ndarray, after: np.ndarray, chunk: int = 4_000_000,
+                      chunk_done: Callable[[], None] | None = None) -> bool:
     """:func:`scan_line_neighbours` of the points ``use`` (n,) bool, written into ``before`` and
     ``after`` (n,) as indices among all n points (-1: none, and for points not used), in one
     pass of ``chunk`` points at a time: for files whose returns come in time order per scanner
     (a drive written as recorded), where the order by time is the points' own. Returns False,
     leaving the outputs unfinished, at the first return earlier than its scanner's previous
-    one (then sort). The arrays may be memory maps: memory is a chunk's."""
+    one (then sort). The arrays may be memory maps: memory is a chunk's (``chunk_done``, called
+    after each chunk, may give the maps' pages back)."""
     last_time: dict[int, float] = {}
     last_index: dict[int, int] = {}
     n = len(gps_time)
@@ -218,6 +221,8 @@ def stream_scan_lines(gps_time: np.ndarray, source: np.ndarray, use: np.ndarray,
         for final in np.flatnonzero(np.r_[~same, True]):
             last_time[int(src[final])] = float(t[final])
             last_index[int(src[final])] = int(rows[final])
+        if chunk_done is not None:
+            chunk_done()
     return True
 
 

@@ -38,6 +38,7 @@ from lidar_outliers.atomic import atomic_path
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.errors import LasFormatError
 from lidar_outliers.output import FLAGS_DIMENSION, result_dimensions, score_dimension
+from lidar_outliers.pages import release
 
 Progress = Callable[[float, str], None]
 
@@ -800,6 +801,7 @@ def write_result(
             out[score_dimension(det)] = values[start:stop].astype(np.float32)
         if classification is not None:
             out.classification = classification[start:stop]
+        release(flags, *scores.values(), classification)  # maps of a tiled run: a chunk's pages
 
     rewrite(
         in_path, out_path, result_dimensions(list(scores)), fill, laz=laz,

@@ -47,6 +47,7 @@ from lidar_outliers import lasio
 from lidar_outliers.detectors import StageModel, get_detector
 from lidar_outliers.errors import MissingDimensionError
 from lidar_outliers.output import FLAGS_DTYPE
+from lidar_outliers.pages import filled, release
 from lidar_outliers.pipeline import Progress
 from lidar_outliers.streaming import _in_time_order
 
@@ -93,16 +94,16 @@ def run_streamed(
     cancels a job through it)."""
     started = time.perf_counter()
     folder.mkdir(parents=True, exist_ok=True)
+    # a new file of zeros ("w+" truncates)
     flags = np.lib.format.open_memmap(folder / "flags.npy", mode="w+", dtype=FLAGS_DTYPE,
                                       shape=(points,))
-    flags[:] = 0
     out = Streamed(flags, {})
     for k, stage in enumerate(stages):
         spec = get_detector(stage.detector)
         assert spec.streams and spec.flag_bit is not None
         score = np.lib.format.open_memmap(folder / f"score_{spec.name}.npy", mode="w+",
                                           dtype=np.float32, shape=(points,))
-        score[:] = np.nan
+        filled(score, np.nan)
         params = stage.parameters()
         assert isinstance(params, TemporalParameters)
         source = _file_series(in_path, params.group_by, flags if k else None, chunk_points)
@@ -163,6 +164,7 @@ def _file_series(in_path: Path, group_by: str, flags: np.ndarray | None,
             lasio.local_xyz(chunk, grid, scales, out=rec["xyz"])
             start = stop
             yield rec if flags is None else rec[flags[rec["index"]] == 0]
+            release(flags)
 
     return chunks
 
@@ -304,6 +306,7 @@ def stream_temporal_stage(
         flags[where[hit]] |= bit
         tested += int(np.count_nonzero(~np.isnan(s)))
         flagged += int(np.count_nonzero(hit))
+        release(diffs, index, score, flags)
     del diffs, index
     gap_by_group = {g: (v if math.isfinite(v) else None) for g, v in gaps.items()}
     info = result_info(p, sigma, source_name, gap_by_group)
@@ -363,6 +366,7 @@ def middle_values(path: Path, counts: np.ndarray, chunk_points: int) -> np.ndarr
                 sel = (slice(None) if shift == 56
                        else (bits >> np.uint64(shift + 8)) == prefix[k][g])
                 hist[k] += np.bincount(g[sel] * 256 + digit[sel], minlength=size * 256)
+            release(data)
         for k in range(2):
             cum = np.cumsum(hist[k].reshape(size, 256), axis=1)
             digit = np.argmax(cum > want[k][:, None], axis=1)
@@ -401,6 +405,7 @@ def unit_differences(
         index[row] = rec["index"]
         done, d = stream.push(rec["xyz"], rec["t"], rec["group"] if grouped else None, row)
         diffs[done] = d
+        release(diffs, index)
     done, d = stream.finish()
     diffs[done] = d
     info = stream.info
@@ -423,8 +428,10 @@ def _count_before(rank: np.ndarray) -> np.ndarray:
 def sample_sigma(diffs: np.ndarray, chunk_points: int) -> tuple[np.ndarray, str]:
     """Sigma per axis as ``estimate_sigma`` makes it from all the rows: from the same evenly
     strided sample of the tested rows, gathered chunk by chunk."""
-    tested = sum(int(np.count_nonzero(~np.isnan(diffs[a:a + chunk_points, 3])))
-                 for a in range(0, len(diffs), chunk_points))
+    tested = 0
+    for a in range(0, len(diffs), chunk_points):
+        tested += int(np.count_nonzero(~np.isnan(diffs[a:a + chunk_points, 3])))
+        release(diffs)
     stride = -(-tested // SIGMA_SAMPLE_POINTS) if tested > SIGMA_SAMPLE_POINTS else 1
     parts, seen = [], 0
     for a in range(0, len(diffs), chunk_points):
@@ -433,5 +440,6 @@ def sample_sigma(diffs: np.ndarray, chunk_points: int) -> tuple[np.ndarray, str]
         take = rows[(seen + np.arange(rows.size)) % stride == 0]
         seen += rows.size
         parts.append(d[take])
+        release(diffs)
     sample = np.concatenate(parts) if parts else np.zeros((0, 4))
     return estimate_sigma(sample[:, :3], sample[:, 3])

@@ -53,6 +53,7 @@ from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors import StageModel, get_detector
 from lidar_outliers.errors import LidarOutliersError
 from lidar_outliers.output import FLAGS_DTYPE
+from lidar_outliers.pages import Releaser, filled, release, releasing
 from lidar_outliers.params import FLAG_BITS, PipelineParams
 from lidar_outliers.pipeline import (
     GROUND_CLASS,
@@ -473,9 +474,9 @@ class Settler:
         folder.mkdir(parents=True, exist_ok=True)
         self.folder, self.stages = folder, stages
         if kept is None:
+            # a new file of zeros ("w+" truncates)
             flags = np.lib.format.open_memmap(folder / "flags.npy", mode="w+",
                                               dtype=FLAGS_DTYPE, shape=(points,))
-            flags[:] = 0
             kept = Streamed(flags, {})
         self.kept = kept
         self.new_scores: list[str] = []
@@ -483,14 +484,15 @@ class Settler:
             name = stage.detector
             score = np.lib.format.open_memmap(folder / f"score_{name}.npy", mode="w+",
                                               dtype=np.float32, shape=(points,))
-            score[:] = np.nan
+            filled(score, np.nan)
             kept.scores[name] = score
             self.new_scores.append(name)
         self._largest = (-1, "[]")
+        self.pages = Releaser([kept.flags, *kept.scores.values()])
 
     def watch(self, results: Iterable[dict[str, Any]]) -> Iterable[dict[str, Any]]:
         """The tiles' results as they come, their settled part written on the way."""
-        for res in results:
+        for res in releasing(results, self.pages):
             index = res["index"]
             self.kept.flags[index] = res["flags"]
             for name in self.new_scores:
@@ -513,7 +515,10 @@ class Settler:
 def dropped_points(flags: np.ndarray, step: int = 4_000_000) -> np.ndarray:
     """The sorted indices of the flagged points of ``flags`` (file order, e.g. a memory map),
     read in pieces: what a tile needs of the streamed stages, 8 bytes a flagged point."""
-    parts = [a + np.flatnonzero(np.asarray(flags[a:a + step])) for a in range(0, len(flags), step)]
+    parts = []
+    for a in range(0, len(flags), step):
+        parts.append(a + np.flatnonzero(np.asarray(flags[a:a + step])))
+        release(flags)
     return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
 
 
@@ -589,13 +594,15 @@ def prepare_stage(
     n = tiles.points
 
     def mapped(name: str, dtype: Any) -> np.ndarray:
+        # a new file of zeros ("w+" truncates): every field starts at 0
         arr = np.lib.format.open_memmap(folder / f"{stage.detector}_{name}.npy", mode="w+",
                                         dtype=dtype, shape=(n,))
-        arr[...] = np.zeros((), dtype=dtype)
+        pages.add(arr)
         return arr
 
+    pages = Releaser([])
     columns = {"in_stage": mapped("in_stage", np.bool_)}
-    for res in results:
+    for res in releasing(results, pages):
         index = res["index"]
         columns["in_stage"][index] = res["in_stage"]
         for key in (k for k in res if k.startswith("value_")):
@@ -612,14 +619,18 @@ def prepare_stage(
         columns["point_source_id"][rec["index"]] = rec["point_source_id"]
         for k, axis in enumerate("xyz"):
             columns[axis][rec["index"]] = rec["xyz"][:, k]
+        pages.moved(len(rec["index"]))
     out = mapped("known", spec.prepass.dtype)
+    pages.now()
     info = spec.prepass.combine(stage.parameters(), columns, out)
+    pages.now()
     with_index = known_dtype(stage.detector)
     for cell in sorted(tiles.cells):
         index = read_cell(tiles, cell)["index"]
         known = np.empty(len(index), dtype=with_index)
         known["index"] = index
         part = out[index]
+        pages.moved(len(index))
         for f in spec.prepass.dtype.names or ():
             known[f] = part[f]
         path = tiles.folder / known_name(stage.detector, cell)
@@ -629,6 +640,7 @@ def prepare_stage(
         os.replace(tmp, path)
         if put is not None:
             put(path)
+    pages.now()
     del columns, out
     tiles.prepared = (*tiles.prepared, stage.detector)
     return info
@@ -653,12 +665,13 @@ def pin_stage(
     folder.mkdir(parents=True, exist_ok=True)
     values = np.lib.format.open_memmap(folder / f"values_{stage.detector}.npy", mode="w+",
                                        dtype=np.float64, shape=(tiles.points,))
-    values[:] = np.nan
-    for res in results:
+    filled(values, np.nan)
+    for res in releasing(results, Releaser([values])):
         values[res["index"]] = res["values"]
     step = 4_000_000
     parts = [values[s:s + step] for s in range(0, tiles.points, step)]
     pinned, info = spec.estimate.pin(stage.parameters(), parts)
+    release(values)
     del parts, values
     return spec.stage(**pinned.as_dict()), info
 
@@ -753,7 +766,7 @@ def merge(
     def mapped(name: str, dtype: Any, fill: float) -> np.ndarray:
         arr = np.lib.format.open_memmap(folder / f"{name}.npy", mode="w+", dtype=dtype,
                                         shape=(n,))
-        arr[:] = fill
+        filled(arr, fill)
         return arr
 
     flags = mapped("flags", FLAGS_DTYPE, 0)
@@ -761,10 +774,11 @@ def merge(
               if get_detector(s.detector).kind == "outlier"}
     classes = mapped("classification", np.uint8, 0) if params.classify else None
     seen = mapped("seen", np.bool_, False)
+    pages = Releaser([flags, *scores.values(), classes, seen])
     if first is not None:
         _start_from(first, flags, scores, classes, seen, params.noise_class)
     tile_stages, halos, sizes = [], [], []
-    for res in results:
+    for res in releasing(results, pages):
         index = res["index"]
         flags[index] = res["flags"]
         seen[index] = True
@@ -829,6 +843,7 @@ def tiled_statistics(
             entry.update(points_tested=int(np.count_nonzero(stage_in)), points_flagged=0,
                          points_ground=ground)
         entries.append(entry)
+        release(flags, *merged.scores.values(), merged.classification, truth)
     confusion = None
     if truth is not None:
         from algorithms.metrics import outlier_confusion
@@ -858,6 +873,7 @@ def _start_from(first: Streamed, flags: np.ndarray, scores: dict[str, np.ndarray
             classes[a:a + step][part != 0] = noise_class
         for name, score in first.scores.items():
             scores[name][a:a + step] = score[a:a + step]
+        release(first.flags, *first.scores.values(), flags, *scores.values(), classes, seen)
 
 
 def noise_truth(tiles: TileSet, reference: list[int] | None, folder: Path) -> np.ndarray | None:
@@ -867,9 +883,12 @@ def noise_truth(tiles: TileSet, reference: list[int] | None, folder: Path) -> np
         return None
     truth = np.lib.format.open_memmap(folder / "truth.npy", mode="w+", dtype=np.bool_,
                                       shape=(tiles.points,))
+    pages = Releaser([truth])
     for cell in tiles.cells:
         rec = read_cell(tiles, cell)
         truth[rec["index"]] = np.isin(rec["classification"], noise)
+        pages.moved(len(rec["index"]))
+    pages.now()
     return truth
 
 

@@ -21,6 +21,7 @@ from algorithms.transient import ScanLineSide, TransientParameters
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors.base import Detector, Prepass
 from lidar_outliers.errors import ParameterError
+from lidar_outliers.pages import release
 
 #: Points per step of the passes over the whole file.
 STREAM_POINTS = 4_000_000
@@ -104,8 +105,12 @@ def combine_scan_lines(params: TransientParameters, columns: dict[str, np.ndarra
 
     use, persistent = columns["in_stage"], columns["persistent"]
     before, after = out["before"], out["after"]
+
+    def chunk_done() -> None:
+        release(*columns.values(), out)
+
     streamed = stream_scan_lines(columns["gps_time"], columns["point_source_id"], use,
-                                 before, after, STREAM_POINTS)
+                                 before, after, STREAM_POINTS, chunk_done)
     if not streamed:
         rows = np.flatnonzero(use)
         before[:], after[:] = -1, -1
@@ -120,6 +125,7 @@ def combine_scan_lines(params: TransientParameters, columns: dict[str, np.ndarra
         for name in ("before", "after"):
             j = part[name]
             part[f"{name}_persistent"] = (j >= 0) & persistent[np.maximum(j, 0)]
+        chunk_done()
     return {"scan_lines": "in file order (time order per scanner)" if streamed else
             "sorted by scanner and time over the whole file",
             "scan_line_points": int(np.count_nonzero(use))}
@@ -148,11 +154,14 @@ def combine_clusters(params: TransientParameters, columns: dict[str, np.ndarray]
         mine = (j >= 0) & (single[pos] == j) if single.size else np.zeros(0, bool)
         sides.append(ScanLineSide(j >= 0, np.where(mine, pos, -1),
                                   np.asarray(out[f"{name}_persistent"][single], dtype=bool)))
+    release(*columns.values(), out)  # the gathers above touched pages all over the file
     clusters, n_comp = cluster_decisions(xyz, facts, tuple(sides), radius=params.radius,
                                          max_extent=params.max_extent)
     for s in range(0, len(out), STREAM_POINTS):
         out["score"][s:s + STREAM_POINTS] = 0
+        release(out)
     out["score"][single] = np.where(clusters.flagged, 2, 1).astype(np.uint8)
+    release(out)
     info.update(single_epoch=int(single.size), single_epoch_clusters=n_comp,
                 points_flagged=int(clusters.flagged.sum()),
                 floating_not_revisited=int((clusters.floating & ~clusters.flagged).sum()),
