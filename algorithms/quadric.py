@@ -659,12 +659,14 @@ def _fit_one(
     a: np.ndarray,
     v_out: np.ndarray,
     t_out: np.ndarray,
+    given_start: np.ndarray,
 ) -> tuple[float, int, int]:
     """Fit one quadric to the active rows of ``xyz`` (n, 3), already centred.
 
     ``var`` (3,) is diag(D_ii). ``a`` (10,) receives the parameters; ``v_out`` and ``t_out`` (n,)
     receive v_i (eq. 29) and T_i (eq. 31) of the active rows (inactive rows are left untouched;
-    with ``t_first_only`` only row 0 gets T). Returns (sigma0, iterations, status), status one
+    with ``t_first_only`` only row 0 gets T). ``given_start`` (10,): where every stage starts,
+    in this frame; NaN: the algebraic start. Returns (sigma0, iterations, status), status one
     of CONVERGED, NOT_CONVERGED, COLLINEAR, SINGULAR, TOO_FEW_POINTS; sigma0 is NaN when the
     last adjustment could not be solved. ``iterations`` counts adjustments over all stages.
     The residuals and T are those of the last adjustment solved.
@@ -690,7 +692,10 @@ def _fit_one(
     else:
         weighted_moments(xyz, active.astype(np.float64), _N_MONO, acc)
     start = np.empty(N_PARAMS)
-    _algebraic_start(acc, start)
+    if given_start[0] == given_start[0]:
+        start[:] = given_start
+    else:
+        _algebraic_start(acc, start)
 
     s = N_PARAMS + 1
     m = np.empty((s, s))
@@ -884,6 +889,7 @@ def _fit_patches(
     contiguous part of it, and an interleaved order (:func:`interleaved_order`) spreads the
     patches that converge slowly, which lie together in space, over all threads."""
     m, k = index.shape
+    algebraic = np.full(N_PARAMS, np.nan)
     for s in prange(m):
         j = order[s]
         active = np.ones(k, dtype=np.bool_)
@@ -893,7 +899,8 @@ def _fit_patches(
         local = np.empty((k, 3))
         _centre(patch, active, local, centroid[j])
         s0, it, st = _fit_one(
-            local, active, var, max_iter, tol, t_first_only, accelerate, params[j], v[j], t[j]
+            local, active, var, max_iter, tol, t_first_only, accelerate, params[j], v[j], t[j],
+            algebraic,
         )
         sigma0[j] = s0
         iterations[j] = it
@@ -995,18 +1002,50 @@ def fit_masked(
     v: np.ndarray,
     t: np.ndarray,
     accelerate: bool = True,
+    start: np.ndarray | None = None,
+    start_centroid: np.ndarray | None = None,
 ) -> tuple[float, int, bool]:
     """Fit one quadric to the rows of ``xyz`` (n, 3) where ``active`` (n,) is True.
 
     The frame is the centroid of the active rows (written to ``centroid`` (3,)); ``var`` (3,) is
     diag(D_ii) of eq. 30. ``params`` (10,), ``v`` and ``t`` (n,) are outputs (eq. 29 residual and
-    eq. 31 T for active rows; inactive rows untouched). Returns (sigma0, iterations, status), status
-    one of CONVERGED, NOT_CONVERGED, COLLINEAR, SINGULAR, TOO_FEW_POINTS.
+    eq. 31 T for active rows; inactive rows untouched). ``start`` (10,): parameters to start
+    from, in the frame of ``start_centroid`` (3,) (an earlier fit's); None: the algebraic start.
+    Returns (sigma0, iterations, status), status one of CONVERGED, NOT_CONVERGED, COLLINEAR,
+    SINGULAR, TOO_FEW_POINTS.
     Callable from other numba code (the section detector runs it per section in parallel).
     """
     local = np.empty((xyz.shape[0], 3))
     _centre(xyz, active, local, centroid)
-    return _fit_one(local, active, var, max_iter, tol, False, accelerate, params, v, t)
+    given = np.full(N_PARAMS, np.nan)
+    if start is not None and start_centroid is not None:
+        moved_frame(start, centroid - start_centroid, given)
+    return _fit_one(local, active, var, max_iter, tol, False, accelerate, params, v, t, given)
+
+
+@njit(cache=True)
+def moved_frame(a: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (10,): the quadric ``a`` of eq. 18 written for coordinates y = x - d (the same
+    surface, its frame's origin moved by ``d`` (3,)), scaled to ||out|| = 1 (eq. 19).
+
+    With F(x) = x^T A x + b^T x + c (A symmetric: a1, a2, a3 on its diagonal, a4/2, a5/2, a6/2
+    off it; b = (a7, a8, a9); c = a10), F(y + d) = y^T A y + (2 A d + b)^T y + F(d)."""
+    ad0 = 2.0 * a[0] * d[0] + a[3] * d[1] + a[4] * d[2]  # 2 A d
+    ad1 = a[3] * d[0] + 2.0 * a[1] * d[1] + a[5] * d[2]
+    ad2 = a[4] * d[0] + a[5] * d[1] + 2.0 * a[2] * d[2]
+    out[:6] = a[:6]
+    out[6] = ad0 + a[6]
+    out[7] = ad1 + a[7]
+    out[8] = ad2 + a[8]
+    out[9] = (a[0] * d[0] * d[0] + a[1] * d[1] * d[1] + a[2] * d[2] * d[2]
+              + a[3] * d[0] * d[1] + a[4] * d[0] * d[2] + a[5] * d[1] * d[2]
+              + a[6] * d[0] + a[7] * d[1] + a[8] * d[2] + a[9])
+    norm = 0.0
+    for q in range(N_PARAMS):
+        norm += out[q] * out[q]
+    norm = math.sqrt(norm)
+    for q in range(N_PARAMS):
+        out[q] /= norm
 
 
 def min_patch_size(alpha: float) -> int:

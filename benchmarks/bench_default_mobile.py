@@ -45,7 +45,7 @@ def run(seeds: list[int], conditions: str, scale: float, cache: Path) -> None:
                     cloud = bench.with_simulated_trajectory(cloud, path)
                 if variant.endswith("given"):
                     settings = {"transient": {"lever_arms": bench.simulated_lever_arms(path)}}
-                flags, _, _ = bench.run_outlier_pipeline(cloud, stages, settings)
+                flags = bench.run_outlier_pipeline(cloud, stages, settings).flagged
                 tp += int((flags & out).sum())
                 fp += int((flags & ~out).sum())
                 n_out += int(out.sum())

@@ -16,6 +16,7 @@ from algorithms.quadric import (
     fit_quadrics,
     interleaved_order,
     min_patch_size,
+    moved_frame,
     weighted_moments,
 )
 
@@ -257,6 +258,42 @@ def test_fit_masked_equals_fit_of_the_subset():
     np.testing.assert_allclose(t[active], T_ref, rtol=1e-9)
     assert np.isnan(t[~active]).all()
     assert s0 == pytest.approx(s0_ref, rel=1e-9)
+
+
+def test_moved_frame_is_the_same_surface():
+    rng = np.random.default_rng(21)
+    a = rng.normal(size=10)
+    d = rng.normal(size=3) * 5.0
+    out = np.empty(10)
+    moved_frame(a, d, out)
+    x = rng.normal(size=(50, 3)) * 3.0
+    before = ref_design_matrix(x) @ a  # F_a at x
+    after = ref_design_matrix(x - d) @ out  # F_out at the same points in the moved frame
+    scale = (before @ after) / (after @ after)  # out is scaled to unit norm
+    np.testing.assert_allclose(after * scale, before, rtol=1e-9, atol=1e-9)
+    assert np.linalg.norm(out) == pytest.approx(1.0)
+
+
+def test_fit_masked_from_an_earlier_fit_in_another_frame_converges_at_once():
+    rng = np.random.default_rng(22)
+    pts = random_patches(rng, 1, 200, "curved")[0]
+    var = np.full(3, 0.005**2)
+    every = np.ones(200, dtype=bool)
+    first, c_first = np.empty(10), np.empty(3)
+    v, t = np.full(200, np.nan), np.full(200, np.nan)
+    _, it_first, status = fit_masked(pts, every, var, 500, 1e-10, first, c_first, v, t)
+    assert status == CONVERGED
+    fewer = every.copy()
+    fewer[:20] = False  # a refit without some points: another centroid
+    algebraic, warm = np.empty(10), np.empty(10)
+    c_alg, c_warm = np.empty(3), np.empty(3)
+    _, _, st_alg = fit_masked(pts, fewer, var, 500, 1e-10, algebraic, c_alg, v, t)
+    _, it_warm, st_warm = fit_masked(pts, fewer, var, 500, 1e-10, warm, c_warm, v, t, True,
+                                     first, c_first)
+    assert st_alg == st_warm == CONVERGED
+    np.testing.assert_array_equal(c_alg, c_warm)
+    np.testing.assert_allclose(warm, algebraic, atol=1e-7)  # the same fixed point
+    assert it_warm <= it_first
 
 
 @pytest.mark.parametrize("n", [1, 40, 256, 257, 1000])

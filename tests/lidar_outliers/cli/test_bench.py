@@ -52,6 +52,9 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
     assert "| **mean** |" in text
     assert "### Recall by outlier kind, per condition" in text and "exhaust_plume" in text
     assert "lowest kind recall %" in text
+    untested = text.split("### Points the quadric fits left untested")[1].split("\n#")[0]
+    assert "| patch | patch | A | " in untested and "| section | section | C | " in untested
+    assert "did_not_converge %" in untested
     assert "## Real airborne tiles" in text and "| cut.laz | 6,000 | " in text
     assert "| airborne (" in text and "Targets met on " in text
     for name in DETECTORS:
