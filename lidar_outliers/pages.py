@@ -57,6 +57,32 @@ def filled(arr: np.ndarray, value: Any) -> None:
         release(arr)
 
 
+def gathered(arr: np.ndarray, rows: np.ndarray, every: int = RELEASE_POINTS) -> np.ndarray:
+    """``arr[rows]`` for sorted ``rows``, read a span of ``every`` positions at a time, each
+    span's pages given back after it: rows spread over a whole file touch every page of it."""
+    out = np.empty((len(rows), *arr.shape[1:]), dtype=arr.dtype)
+    for lo, hi in _spans(rows, len(arr), every):
+        out[lo:hi] = arr[rows[lo:hi]]
+        release(arr)
+    return out
+
+
+def scattered(arr: np.ndarray, rows: np.ndarray, values: np.ndarray,
+              every: int = RELEASE_POINTS) -> None:
+    """``arr[rows] = values`` for sorted ``rows``, a span of ``every`` positions at a time, each
+    span's pages given back after it."""
+    for lo, hi in _spans(rows, len(arr), every):
+        arr[rows[lo:hi]] = values[lo:hi]
+        release(arr)
+
+
+def _spans(rows: np.ndarray, n: int, every: int) -> list[tuple[int, int]]:
+    """(lo, hi) per span of ``every`` positions of an array of n: the part rows[lo:hi] of the
+    sorted ``rows`` that falls in it (empty spans left out)."""
+    cuts = np.searchsorted(rows, np.r_[np.arange(0, max(n, 1), every), max(n, 1)])
+    return [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a]
+
+
 class Releaser:
     """Releases the pages of ``arrays`` after every ``every`` points a pass has moved through
     them (:meth:`moved`), and at :meth:`now`."""

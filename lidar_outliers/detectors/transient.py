@@ -21,7 +21,7 @@ from algorithms.transient import ScanLineSide, TransientParameters
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors.base import Detector, Prepass
 from lidar_outliers.errors import ParameterError
-from lidar_outliers.pages import release
+from lidar_outliers.pages import gathered, release, scattered
 
 #: Points per step of the passes over the whole file.
 STREAM_POINTS = 4_000_000
@@ -144,24 +144,23 @@ def combine_clusters(params: TransientParameters, columns: dict[str, np.ndarray]
     single = np.concatenate([s + np.flatnonzero(np.asarray(use[s:s + STREAM_POINTS])
                                                 & ~np.asarray(persistent[s:s + STREAM_POINTS]))
                              for s in range(0, len(out), STREAM_POINTS)] or [np.zeros(0, int)])
-    xyz = np.column_stack([np.asarray(columns[c][single]) for c in ("x", "y", "z")])
-    facts = {name: np.asarray(columns[name][single], dtype=bool) for name in ("touches",
-                                                                               "covered")}
+    # gathered a span of the file at a time: single-epoch points lie all over it
+    xyz = np.column_stack([gathered(columns[c], single) for c in ("x", "y", "z")])
+    facts = {name: gathered(columns[name], single).astype(bool) for name in ("touches",
+                                                                              "covered")}
     sides = []
     for name in ("before", "after"):
-        j = np.asarray(out[name][single])
+        j = gathered(out[name], single)
         pos = np.minimum(np.searchsorted(single, j), max(single.size - 1, 0))
         mine = (j >= 0) & (single[pos] == j) if single.size else np.zeros(0, bool)
         sides.append(ScanLineSide(j >= 0, np.where(mine, pos, -1),
-                                  np.asarray(out[f"{name}_persistent"][single], dtype=bool)))
-    release(*columns.values(), out)  # the gathers above touched pages all over the file
+                                  gathered(out[f"{name}_persistent"], single).astype(bool)))
     clusters, n_comp = cluster_decisions(xyz, facts, tuple(sides), radius=params.radius,
                                          max_extent=params.max_extent)
     for s in range(0, len(out), STREAM_POINTS):
         out["score"][s:s + STREAM_POINTS] = 0
         release(out)
-    out["score"][single] = np.where(clusters.flagged, 2, 1).astype(np.uint8)
-    release(out)
+    scattered(out["score"], single, np.where(clusters.flagged, 2, 1).astype(np.uint8))
     info.update(single_epoch=int(single.size), single_epoch_clusters=n_comp,
                 points_flagged=int(clusters.flagged.sum()),
                 floating_not_revisited=int((clusters.floating & ~clusters.flagged).sum()),

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from lidar_outliers.pages import Releaser, filled, release, releasing
+from lidar_outliers.pages import Releaser, filled, gathered, release, releasing, scattered
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux")
                                 or not hasattr(mmap, "MADV_DONTNEED"),
@@ -69,3 +69,18 @@ def test_filled_and_releasing(tmp_path):
     assert seen == [0, 2, 0]  # counted after each result: released at 4 points and at the end
     assert releaser.pending == 0
     assert np.count_nonzero(arr == 1.0) == 6
+
+
+def test_gathered_and_scattered_by_spans_equal_fancy_indexing(tmp_path):
+    rng = np.random.default_rng(3)
+    arr = np.lib.format.open_memmap(tmp_path / "a.npy", mode="w+", dtype=np.float64,
+                                    shape=(10_007, 2))
+    arr[:] = rng.normal(size=(10_007, 2))
+    rows = np.sort(rng.choice(10_007, 900, replace=False))
+    np.testing.assert_array_equal(gathered(arr, rows, every=1000), arr[rows])
+    assert gathered(arr, rows[:0], every=1000).shape == (0, 2)
+    values = rng.normal(size=(900, 2))
+    expected = np.array(arr)
+    expected[rows] = values
+    scattered(arr, rows, values, every=333)
+    np.testing.assert_array_equal(arr, expected)
