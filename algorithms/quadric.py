@@ -813,12 +813,7 @@ def _fit_one(
         q_vv = 1.0 / p_w[i] - bqb  # cofactor of v_i: 1/p_i - B_i Q_aa B_i^T
         t_out[i] = t_statistic(v_out[i], sigma0, q_vv, n_act - DOF_LOSS)
     # eq. 19 exactly: a damped last step (a fit that did not converge) leaves ||a|| off 1.
-    norm = 0.0
-    for q in range(N_PARAMS):
-        norm += a[q] * a[q]
-    norm = math.sqrt(norm)
-    for q in range(N_PARAMS):
-        a[q] /= norm
+    _unit_norm(a)
     if _canonical_sign(a):
         for i in range(n):
             if active[i]:
@@ -1030,22 +1025,26 @@ def moved_frame(a: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
 
     With F(x) = x^T A x + b^T x + c (A symmetric: a1, a2, a3 on its diagonal, a4/2, a5/2, a6/2
     off it; b = (a7, a8, a9); c = a10), F(y + d) = y^T A y + (2 A d + b)^T y + F(d)."""
-    ad0 = 2.0 * a[0] * d[0] + a[3] * d[1] + a[4] * d[2]  # 2 A d
-    ad1 = a[3] * d[0] + 2.0 * a[1] * d[1] + a[5] * d[2]
-    ad2 = a[4] * d[0] + a[5] * d[1] + 2.0 * a[2] * d[2]
+    b = np.empty(N_PARAMS)
+    design_row(d[0], d[1], d[2], b)
+    value = 0.0  # F(d)
+    for q in range(N_PARAMS):
+        value += a[q] * b[q]
     out[:6] = a[:6]
-    out[6] = ad0 + a[6]
-    out[7] = ad1 + a[7]
-    out[8] = ad2 + a[8]
-    out[9] = (a[0] * d[0] * d[0] + a[1] * d[1] * d[1] + a[2] * d[2] * d[2]
-              + a[3] * d[0] * d[1] + a[4] * d[0] * d[2] + a[5] * d[1] * d[2]
-              + a[6] * d[0] + a[7] * d[1] + a[8] * d[2] + a[9])
+    out[6], out[7], out[8] = gradient(a, d[0], d[1], d[2])  # 2 A d + b (eqs. 25-27)
+    out[9] = value
+    _unit_norm(out)
+
+
+@njit(cache=True, inline="always")
+def _unit_norm(a: np.ndarray) -> None:
+    """Scale ``a`` to ||a|| = 1 (eq. 19)."""
     norm = 0.0
     for q in range(N_PARAMS):
-        norm += out[q] * out[q]
+        norm += a[q] * a[q]
     norm = math.sqrt(norm)
     for q in range(N_PARAMS):
-        out[q] /= norm
+        a[q] /= norm
 
 
 def min_patch_size(alpha: float) -> int:
