@@ -21,7 +21,7 @@ from algorithms.transient import ScanLineSide, TransientParameters
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors.base import Detector, Prepass
 from lidar_outliers.errors import ParameterError
-from lidar_outliers.pages import gathered, release, scattered
+from lidar_outliers.pages import filled, gathered, release, scattered
 
 #: Points per step of the passes over the whole file.
 STREAM_POINTS = 4_000_000
@@ -157,9 +157,7 @@ def combine_clusters(params: TransientParameters, columns: dict[str, np.ndarray]
                                   gathered(out[f"{name}_persistent"], single).astype(bool)))
     clusters, n_comp = cluster_decisions(xyz, facts, tuple(sides), radius=params.radius,
                                          max_extent=params.max_extent)
-    for s in range(0, len(out), STREAM_POINTS):
-        out["score"][s:s + STREAM_POINTS] = 0
-        release(out)
+    filled(out["score"], 0)
     scattered(out["score"], single, np.where(clusters.flagged, 2, 1).astype(np.uint8))
     info.update(single_epoch=int(single.size), single_epoch_clusters=n_comp,
                 points_flagged=int(clusters.flagged.sum()),
