@@ -62,19 +62,31 @@ def dynamic_radius(
     return np.maximum(min_radius, multiplier * rng * np.deg2rad(angular_resolution))
 
 
-def neighbour_counts(xyz: np.ndarray, radius: np.ndarray, *, workers: int = 1) -> np.ndarray:
-    """Number of OTHER points within ``radius[i]`` (inclusive) of each point i.
+def neighbour_counts(
+    xyz: np.ndarray, radius: np.ndarray, cap: int, *, queries: np.ndarray | None = None,
+    workers: int = 1,
+) -> np.ndarray:
+    """Number of OTHER points within ``radius[i]`` (inclusive) of each queried point, up to ``cap``.
 
-    xyz : (n, 3) float64; radius : (n,) float64 (one radius per query point).
-    Returns (n,) int64. A duplicate of a point counts as a neighbour.
+    xyz : (n, 3) float64, the whole cloud; radius : (q,) float64, one radius per queried point.
+    queries : (q,) indices of the queried points (default: every point).
+    Returns (q,) int64 in [0, cap]. A duplicate of a point counts as a neighbour.
+
+    DROR needs only "at least k_min or not", so the count stops at ``cap``: the (cap + 1)
+    nearest points (the point itself among them) are read instead of every point in the sphere.
+    Far from the origin the spheres hold thousands of points; the capped count does not grow
+    with them.
     """
-    if len(xyz) == 0:
+    queries = np.arange(len(xyz)) if queries is None else np.asarray(queries)
+    if len(queries) == 0:
         return np.zeros(0, dtype=np.int64)
     from scipy.spatial import cKDTree
 
     tree = cKDTree(xyz)
-    counts = tree.query_ball_point(xyz, radius, return_length=True, workers=workers)
-    return np.asarray(counts, dtype=np.int64) - 1  # the point itself is always inside
+    dist, _ = tree.query(xyz[queries], k=cap + 1, workers=workers)
+    dist = dist.reshape(len(queries), cap + 1)
+    inside = dist <= np.asarray(radius, dtype=np.float64)[:, None]
+    return np.count_nonzero(inside, axis=1).astype(np.int64) - 1  # the point itself
 
 
 def detect_dror(
@@ -89,8 +101,8 @@ def detect_dror(
     """DROR: flag the points with fewer than ``k_min`` neighbours in their dynamic radius.
 
     xyz : (n, 3) float64 metres, in the frame of ``origin`` (the sensor position).
-    Returns a DetectorResult whose score is ``k_min - neighbours`` (the neighbours missing to
-    be kept; critical value 0: flagged when score > 0).
+    Returns a DetectorResult whose score is ``k_min - neighbours``, the neighbours missing to
+    be kept (0 for every point with at least ``k_min``; critical value 0: flagged when score > 0).
 
     >>> pts = np.array([[10.0, 0, 0], [10.0, 0.01, 0], [10.0, 0.02, 0], [5.0, 5.0, 5.0]])
     >>> detect_dror(pts).flagged.tolist()
@@ -103,7 +115,7 @@ def detect_dror(
         xyz, origin, multiplier=multiplier, angular_resolution=angular_resolution,
         min_radius=min_radius,
     )
-    counts = neighbour_counts(xyz, radius)
+    counts = neighbour_counts(xyz, radius, k_min)
     score = (k_min - counts).astype(np.float64)
     flagged = score > 0
     info = {

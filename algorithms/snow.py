@@ -59,8 +59,8 @@ def detect_snow(
         cloud in the sensor frame).
     intensity : (n,) numbers (the LAS intensity; only the comparison with ``max_intensity``
         matters, so the 8- or 16-bit scaling of the sensor is irrelevant for the default 0).
-    Returns a DetectorResult; score = ``k_min - neighbours`` for the dark points (the
-    candidates), NaN for the others (not tested); critical value 0 (flagged when score > 0).
+    Returns a DetectorResult; score = ``k_min - neighbours`` (neighbours counted up to
+    ``k_min``) for the dark points (the candidates), NaN for the others (not tested); critical value 0 (flagged when score > 0).
     Neighbours are counted among ALL points, bright or dark.
     """
     xyz = check_xyz(xyz)
@@ -76,13 +76,8 @@ def detect_snow(
         min_radius=min_radius,
     )
     score = np.full(len(xyz), np.nan)
-    if dark.any():
-        # Only the candidates are queried, against the whole cloud.
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(xyz)
-        counts = tree.query_ball_point(xyz[dark], radius[dark], return_length=True)
-        score[dark] = k_min - (np.asarray(counts, dtype=np.float64) - 1.0)
+    counts = neighbour_counts(xyz, radius[dark], k_min, queries=np.flatnonzero(dark))
+    score[dark] = k_min - counts
     flagged = np.nan_to_num(score, nan=0.0) > 0
     info = {
         "k_min": int(k_min), "multiplier": float(multiplier),
