@@ -60,7 +60,8 @@ def detect_snow(
     intensity : (n,) numbers (the LAS intensity; only the comparison with ``max_intensity``
         matters, so the 8- or 16-bit scaling of the sensor is irrelevant for the default 0).
     Returns a DetectorResult; score = ``k_min - neighbours`` (neighbours counted up to
-    ``k_min``) for the dark points (the candidates), NaN for the others (not tested); critical value 0 (flagged when score > 0).
+    ``k_min``) for the dark points (the candidates), NaN for the others (not tested);
+    critical value 0 (flagged when score > 0).
     Neighbours are counted among ALL points, bright or dark.
     """
     xyz = check_xyz(xyz)
