@@ -261,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tile-job-points", type=int, default=2_000_000,
                         help="the service's TILE_JOB_POINTS")
     parser.add_argument("--folder", type=Path, help="work folder (default: a temporary one)")
+    parser.add_argument("--no-cli", action="store_true",
+                        help="skip the large cloud's command-line run (the base run still runs)")
     args = parser.parse_args(argv)
     folder = args.folder or Path(tempfile.mkdtemp(prefix="bench-scale-"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -278,8 +280,9 @@ def main(argv: list[str] | None = None) -> int:
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | --- |")
     ref = run_cli(base, folder / "base_out.las", args.params, args.tile_size)
     print(row("CLI, base cloud", base_points, ref, None, base_points), flush=True)
-    res = run_cli(big, folder / "out.las", args.params, args.tile_size)
-    print(row("CLI", args.points, res, ref["wall"], base_points), flush=True)
+    if not args.no_cli:
+        res = run_cli(big, folder / "out.las", args.params, args.tile_size)
+        print(row("CLI", args.points, res, ref["wall"], base_points), flush=True)
     for workers in args.workers:
         svc = run_service(big, folder / f"service_{workers}", workers, args.params,
                           args.tile_job_points, args.tile_size)
