@@ -79,6 +79,7 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
                            and sim["targets"][name][cond]["false_alarm_pct"] <= 0.05)
     cut = numbers["airborne"]["cut"]
     assert cut["profile"] == "airborne" and cut["gross_found"] <= cut["gross"]
+    assert len(cut["missed_gross_gaps_m"]) == cut["gross"] - cut["gross_found"]
     speed = numbers["speed"]["temporal"]
     assert speed["points"] > 0 and speed["peak_rss_mb"] >= speed["rss_before_mb"] > 0
     assert speed["run_peak_rss_mb"] >= speed["rss_before_mb"]
@@ -110,6 +111,17 @@ def test_paper_percentages_follow_from_its_counts(table):
         flagged = row["outliers_identified"] + row["non_outliers_identified"]
         assert row["pct_cloud_identified"] == pytest.approx(100 * flagged / total["points"],
                                                             abs=0.006)
+
+
+def test_gaps_to_unlabelled_against_every_distance():
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(0, 10, (300, 3))
+    labelled = rng.random(300) < 0.2
+    missed = labelled & (rng.random(300) < 0.5)
+    slow = sorted(min(np.linalg.norm(xyz[i] - xyz[j]) for j in np.flatnonzero(~labelled))
+                  for i in np.flatnonzero(missed))
+    np.testing.assert_allclose(bench.gaps_to_unlabelled(xyz, labelled, missed), slow)
+    assert bench.gaps_to_unlabelled(xyz, labelled, np.zeros(300, bool)).size == 0
 
 
 def test_bad_folder_is_one_line_usage_error(tmp_path, capsys):
