@@ -338,29 +338,50 @@ def voxel_pieces(xyz: np.ndarray, size: float, origin: np.ndarray | None = None)
     (default: the lowest coordinates; a run tile by tile shares one with the whole cloud's).
     Returns (n,) int piece labels 0..p-1.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     n = len(xyz)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
     ijk = grid_index(xyz, size, xyz.min(axis=0) if origin is None else origin)
-    ijk += 1 - ijk.min(axis=0)
+    voxels, inverse = distinct_voxels(ijk)
+    return voxel_components(voxels)[inverse]
+
+
+def distinct_voxels(ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows (m, 3) of the voxel indices ``ijk`` (n, 3) int, in order, and the row
+    of each (n,): ``np.unique(ijk, axis=0, return_inverse=True)`` by one int64 key a voxel."""
+    low = ijk.min(axis=0)
+    dims = ijk.max(axis=0) - low + 1
+    key = ((ijk[:, 0] - low[0]) * dims[1] + (ijk[:, 1] - low[1])) * dims[2] + (ijk[:, 2] - low[2])
+    keys, inverse = np.unique(key, return_inverse=True)
+    rest, k = np.divmod(keys, dims[2])
+    i, j = np.divmod(rest, dims[1])
+    return np.column_stack([i + low[0], j + low[1], k + low[2]]), inverse.ravel()
+
+
+def voxel_components(voxels: np.ndarray) -> np.ndarray:
+    """(m,) piece label of each of the distinct voxels ``voxels`` (m, 3) int (grid indices):
+    the connected components of the voxels that share a face, an edge or a corner."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    m = len(voxels)
+    if m == 0:
+        return np.zeros(0, dtype=np.int64)
+    ijk = voxels - voxels.min(axis=0) + 1
     dims = ijk.max(axis=0) + 2
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    voxels, inverse = np.unique(key, return_inverse=True)
-    m = voxels.size
+    order = np.argsort(key)
+    key = key[order]
     rows, cols = [], []
     for di, dj, dk in _FORWARD:
-        wanted = voxels + (di * dims[1] + dj) * dims[2] + dk
-        pos = np.minimum(np.searchsorted(voxels, wanted), m - 1)
-        hit = voxels[pos] == wanted
-        rows.append(np.flatnonzero(hit))
-        cols.append(pos[hit])
+        wanted = key + (di * dims[1] + dj) * dims[2] + dk
+        pos = np.minimum(np.searchsorted(key, wanted), m - 1)
+        hit = key[pos] == wanted
+        rows.append(order[hit])
+        cols.append(order[pos[hit]])
     r, c = np.concatenate(rows), np.concatenate(cols)
     graph = coo_matrix((np.ones(r.size, dtype=np.int8), (r, c)), shape=(m, m))
-    _, label = connected_components(graph, directed=False)
-    return label[inverse.ravel()]
+    return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
 #: Share of the points allowed in small pieces at the scale :func:`surface_scale` chooses.
@@ -376,13 +397,19 @@ LARGEST_VOXEL = 16.0
 def voxel_ladder(start: float = 0.0) -> list[float]:
     """The voxel sizes :func:`surface_scale` may look at: 0.1 m x sqrt(2)^i from the first at
     least ``start``, up to the first beyond ``LARGEST_VOXEL`` (whose share decides whether the
-    last size is a plateau), computed step by step as the search steps."""
-    size = 0.1
-    while size < start:
-        size *= np.sqrt(2.0)
-    sizes = [size]
+    last size is a plateau). Every other size is exactly twice the one two steps before
+    (0.1 x 2^j and 0.1 sqrt(2) x 2^j): a voxel of one is eight of the other's, which lets
+    :func:`ladder_pieces` cut each family's grids from the finest one."""
+    def size(i: int) -> float:
+        return (0.1 if i % 2 == 0 else 0.1 * np.sqrt(2.0)) * 2.0 ** (i // 2)
+
+    i = 0
+    while size(i) < start:
+        i += 1
+    sizes = [size(i)]
     while sizes[-1] <= LARGEST_VOXEL * 1.0001:
-        sizes.append(sizes[-1] * np.sqrt(2.0))
+        i += 1
+        sizes.append(size(i))
     return [float(v) for v in sizes]
 
 
@@ -450,19 +477,85 @@ def small_ladder(xyz: np.ndarray, piece_points: int, start: float = 0.0,
 def ladder_pieces(local: np.ndarray, piece_points: int,
                   start: float) -> tuple[np.ndarray, np.ndarray]:
     """(bits, reach), each (n,): :func:`small_ladder`'s bits of ``local`` (grids at 0) and the
-    largest :func:`piece_reach` over the ladder, from one cut per size."""
-    bits = np.zeros(len(local), dtype=np.int64)
-    reach = np.zeros(len(local))
-    if len(local) == 0:
+    largest :func:`piece_reach` over the ladder.
+
+    The same pieces as :func:`voxel_pieces` at each size of :func:`voxel_ladder`, cut on the
+    voxels rather than the points: a voxel of size 2s is the eight of size s whose indices
+    halve to its own (floor(floor(x / s) / 2) = floor(x / 2s), and 2s is exact in floating
+    point), so only the finest grid of each of the ladder's two families reads the points.
+    Each voxel carries its points' count and XY bounds up the family.
+    """
+    n = len(local)
+    bits = np.zeros(n, dtype=np.int64)
+    reach = np.zeros(n)
+    if n == 0:
         return bits.astype(np.float64), reach
-    for i, size in enumerate(voxel_ladder(start)):
-        label = voxel_pieces(local, size, np.zeros(3))
-        small = np.bincount(label)[label] < piece_points
-        bits |= small.astype(np.int64) << i
-        if small.any():
-            around = label_extent(local[small, :2], label[small]) + 3 * size
-            reach[small] = np.maximum(reach[small], around)
+    sizes = voxel_ladder(start)
+    for first in (0, 1):
+        family = sizes[first::2]
+        voxels, point_voxel, stats = _finest_voxels(local, family[0])
+        for j, size in enumerate(family):
+            if j:
+                voxels, up, stats = _coarser_voxels(voxels, stats)
+                point_voxel = up[point_voxel]
+            small, extent = _small_voxel_pieces(voxels, stats, piece_points)
+            at_point = small[point_voxel]
+            bits |= at_point.astype(np.int64) << (first + 2 * j)
+            if at_point.any():
+                reach[at_point] = np.maximum(reach[at_point],
+                                             extent[point_voxel[at_point]] + 3 * size)
     return bits.astype(np.float64), reach
+
+
+def _finest_voxels(local: np.ndarray, size: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct voxels (m, 3) of ``size`` (grid at 0) of the points ``local``, each point's
+    voxel (n,) and each voxel's [points, x min, y min, x max, y max] (m, 5)."""
+    ijk = grid_index(local, size, np.zeros(3))
+    voxels, inverse = distinct_voxels(ijk)
+    stats = np.empty((len(voxels), 5))
+    stats[:, 0] = np.bincount(inverse, minlength=len(voxels))
+    stats[:, 1:3] = np.inf
+    stats[:, 3:5] = -np.inf
+    np.minimum.at(stats[:, 1:3], inverse, local[:, :2])
+    np.maximum.at(stats[:, 3:5], inverse, local[:, :2])
+    return voxels, inverse, stats
+
+
+def _coarser_voxels(voxels: np.ndarray, stats: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The voxels twice as large (indices halved), each finer voxel's coarser one and the
+    coarser voxels' counts and XY bounds."""
+    coarse, up = distinct_voxels(np.floor_divide(voxels, 2))
+    return coarse, up, _grouped_stats(stats, up, len(coarse))
+
+
+def _grouped_stats(stats: np.ndarray, group: np.ndarray, groups: int) -> np.ndarray:
+    """[points, x min, y min, x max, y max] of each group of rows of ``stats``."""
+    out = np.empty((groups, 5))
+    out[:, 0] = np.bincount(group, weights=stats[:, 0], minlength=groups)
+    out[:, 1:3] = np.inf
+    out[:, 3:5] = -np.inf
+    np.minimum.at(out[:, 1:3], group, stats[:, 1:3])
+    np.maximum.at(out[:, 3:5], group, stats[:, 3:5])
+    return out
+
+
+def _small_voxel_pieces(voxels: np.ndarray, stats: np.ndarray, piece_points: int
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) bool: the voxel lies in a piece of fewer than ``piece_points`` points; (m,) the
+    XY diagonal of its piece's points (NaN where the piece is not small)."""
+    label = voxel_components(voxels)
+    pieces = int(label.max()) + 1
+    points = np.bincount(label, weights=stats[:, 0], minlength=pieces)
+    small = points[label] < piece_points
+    extent = np.full(len(voxels), np.nan)
+    if small.any():
+        rows = np.flatnonzero(small)
+        bounds = _grouped_stats(stats[rows], label[rows], pieces)
+        diagonal = np.hypot(bounds[:, 3] - bounds[:, 1], bounds[:, 4] - bounds[:, 2])
+        extent[rows] = diagonal[label[rows]]
+    return small, extent
 
 
 def scale_of_ladder(parts: Iterable[np.ndarray], piece_points: int, start: float) -> float:

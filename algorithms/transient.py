@@ -30,8 +30,8 @@ For n points with coordinates and GPS times:
      other scanner or pass; nobody sees the ground under a parked car's roof).
 
 Score per point: 0 persistent, 1 single-epoch in an attached, wide or unrevisited cluster, 2
-single-epoch in a floating, revisited cluster (flagged; critical value 1.5). Pure numpy/scipy
-(cKDTree, sparse connected components).
+single-epoch in a floating, revisited cluster (flagged; critical value 1.5). numpy/scipy
+(cKDTree) and the compiled clusters of :mod:`algorithms.linked`.
 
 Over a file of any size (:func:`point_facts`, :func:`cluster_decisions`), with the whole
 cloud's result and no halo wider than ``2 * radius``: step 1 and what steps 3-4 read around a
@@ -40,8 +40,8 @@ depend only on the points within ``2 * radius``, so a pass over tiles with that 
 them gives them for every point; the scan-line neighbours (the returns fired just before and
 after) may lie anywhere, a pass over the whole file in time order gives them
 (:func:`scan_line_neighbours` on every point's time and scanner); the clusters are the
-connected components of the single-epoch points, found slab by slab along x and joined
-through the points the slabs share (:func:`linked_components`), and every decision of steps
+connected components of the single-epoch points (:func:`algorithms.linked.radius_components`,
+whose memory does not grow with the number of links), and every decision of steps
 3-4 is a count, a bounding box or an "any" over a cluster's points, summed over the file.
 """
 
@@ -245,18 +245,6 @@ def scan_line_sides(neighbours: tuple[np.ndarray, np.ndarray], persistent: np.nd
     return before, after
 
 
-def cluster_labels(xyz: np.ndarray, single: np.ndarray, radius: float) -> tuple[int, np.ndarray]:
-    """Number of clusters and the cluster of each of the points ``single`` (links <= radius)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    pairs = cKDTree(xyz[single]).query_pairs(radius, output_type="ndarray")
-    m = single.size
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
-    return connected_components(graph, directed=False)
-
-
 def cluster_widths(xy: np.ndarray, label: np.ndarray, n_comp: int) -> np.ndarray:
     """(n_comp,) the longer side of each cluster's XY bounding box (xy: (m, 2) its points)."""
     lo = np.full((n_comp, 2), np.inf)
@@ -320,7 +308,9 @@ def floating_clusters(xyz: np.ndarray, persistent: np.ndarray, touches: np.ndarr
     floating, flagged, wide = (np.zeros(n, dtype=bool) for _ in range(3))
     if single.size == 0:
         return Clusters(floating, flagged, wide)
-    n_comp, label = linked_components(xyz[single], radius)  # memory: a slab's links
+    from algorithms.linked import radius_components
+
+    n_comp, label = radius_components(xyz[single], radius)  # memory: no list of links
     attached = np.zeros(n_comp, dtype=bool)
     attached[label[touches[single]]] = True
     too_wide = cluster_widths(xyz[single, :2], label, n_comp) > max_extent
@@ -434,52 +424,15 @@ def point_facts(xyz: np.ndarray, gps_time: np.ndarray, *, k: int, radius: float,
     return {"persistent": persistent, "touches": touches, "covered": covered}
 
 
-#: Points a slab of :func:`linked_components` holds (memory: about 10 kB a point where a
-#: standing vehicle piles its single-epoch returns up, some 190 links each).
-BLOCK_POINTS = 20_000
-
-
-def linked_components(xyz: np.ndarray, radius: float, block_points: int = BLOCK_POINTS
-                      ) -> tuple[int, np.ndarray]:
-    """:func:`cluster_labels` of every point of ``xyz`` (links of at most ``radius``), found
-    block by block so that memory follows a block: the points sorted by x are cut into slabs
-    of ``block_points``, each slab's points and those within ``radius`` of it in x are joined
-    locally, and the slabs' components are joined through the points they share. Two linked
-    points lie within ``radius`` in x, so in the slab of either with its margin: the components
-    are those of the whole set (the labels may be numbered otherwise). Slabs by count, not by
-    area, keep a dense spot (a vehicle standing still) from making one block hold most links."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    m = len(xyz)
-    if m == 0:
-        return 0, np.zeros(0, dtype=np.int32)
-    order = np.argsort(xyz[:, 0], kind="stable")
-    x = xyz[order, 0]
-    sources, targets = [], []
-    for a in range(0, m, block_points):
-        b = min(a + block_points, m)
-        lo = np.searchsorted(x, x[a] - radius, side="left")
-        hi = np.searchsorted(x, x[b - 1] + radius, side="right")
-        around = np.sort(order[lo:hi])
-        _, local = cluster_labels(xyz, around, radius)
-        first = np.full(int(local.max()) + 1, -1, dtype=np.int64)
-        first[local[::-1]] = around[::-1]  # each local component's first point
-        sources.append(around)
-        targets.append(first[local])
-    src, dst = np.concatenate(sources), np.concatenate(targets)
-    graph = coo_matrix((np.ones(src.size, dtype=np.int8), (src, dst)), shape=(m, m))
-    return connected_components(graph, directed=False)
-
-
 def cluster_decisions(xyz: np.ndarray, facts: dict[str, np.ndarray], sides: tuple[
-        ScanLineSide, ...], *, radius: float, max_extent: float,
-        block_points: int = BLOCK_POINTS) -> tuple[Clusters, int]:
+        ScanLineSide, ...], *, radius: float, max_extent: float) -> tuple[Clusters, int]:
     """Steps 3-4 on the single-epoch points of a whole file, from their :func:`point_facts`
     (``touches``, ``covered``) and scan-line ``sides`` (``row``: the neighbour's position among
     these points, -1 when it is not one of them): :class:`Clusters` over them, as
     :func:`floating_clusters` decides them on the whole cloud, and the number of clusters."""
-    n_comp, label = linked_components(xyz, radius, block_points)
+    from algorithms.linked import radius_components
+
+    n_comp, label = radius_components(xyz, radius)
     attached = np.zeros(n_comp, dtype=bool)
     attached[label[facts["touches"]]] = True
     too_wide = cluster_widths(xyz[:, :2], label, n_comp) > max_extent

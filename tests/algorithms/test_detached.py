@@ -11,8 +11,10 @@ import pytest
 from algorithms.detached import (
     XY_SPACING_K,
     detect_detached,
+    distinct_voxels,
     envelope_scores,
     floor_scores,
+    ladder_pieces,
     median_spacing,
     nearest_distance,
     nearest_first,
@@ -22,6 +24,7 @@ from algorithms.detached import (
     small_ladder,
     strided_median,
     surface_scale,
+    voxel_ladder,
     voxel_pieces,
     xy_kth_distance,
     xy_spacing,
@@ -157,9 +160,9 @@ def test_real_airborne_gross_outliers():
 # --------------------------------------------------------------------------- under the surface
 
 
-def slow_pieces(xyz: np.ndarray, size: float) -> np.ndarray:
+def slow_pieces(xyz: np.ndarray, size: float, origin: np.ndarray | None = None) -> np.ndarray:
     """Pieces by breadth-first search over explicit voxel indices (26 neighbours)."""
-    ijk = np.floor((xyz - xyz.min(axis=0)) / size).astype(int)
+    ijk = np.floor((xyz - (xyz.min(axis=0) if origin is None else origin)) / size).astype(int)
     label = np.full(len(xyz), -1)
     current = 0
     for seed in range(len(xyz)):
@@ -188,6 +191,52 @@ def test_voxel_pieces_match_breadth_first_search():
     for size in (0.7, 1.5, 4.0):
         assert same_partition(voxel_pieces(xyz, size), slow_pieces(xyz, size))
     assert voxel_pieces(np.zeros((0, 3)), 1.0).shape == (0,)
+
+
+def slow_ladder(local: np.ndarray, piece_points: int, start: float):
+    """Bits and reach of every ladder size, each from its own breadth-first pieces of the
+    points and explicit XY bounds of each small piece's points."""
+    bits = np.zeros(len(local), dtype=np.int64)
+    reach = np.zeros(len(local))
+    for i, size in enumerate(voxel_ladder(start)):
+        label = slow_pieces(local, size, np.zeros(3))
+        for piece in np.unique(label):
+            members = label == piece
+            if members.sum() < piece_points:
+                bits[members] |= 1 << i
+                lo, hi = local[members, :2].min(axis=0), local[members, :2].max(axis=0)
+                extent = np.hypot(*(hi - lo)) + 3 * size
+                reach[members] = np.maximum(reach[members], extent)
+    return bits.astype(np.float64), reach
+
+
+def test_ladder_cut_on_voxels_matches_pieces_of_the_points_at_every_size():
+    rng = np.random.default_rng(12)
+    local = np.vstack([rough_terrain(12, 400), rng.normal([20, 20, 2], 0.3, (12, 3)),
+                       rng.normal([5, 35, 30], 1.5, (8, 3))])
+    local[:, 2] += 20  # the grid's corner at 0 lies below and beside every point
+    for piece_points, start in ((30, 0.3), (200, 0.9), (1000, 0.0)):
+        bits, reach = ladder_pieces(local, piece_points, start)
+        slow_bits, slow_reach = slow_ladder(local, piece_points, start)
+        np.testing.assert_array_equal(bits, slow_bits)
+        np.testing.assert_allclose(reach, slow_reach, rtol=1e-12)
+    empty = ladder_pieces(np.zeros((0, 3)), 30, 0.3)
+    assert empty[0].shape == empty[1].shape == (0,)
+
+
+def test_ladder_sizes_double_every_second_step():
+    sizes = voxel_ladder(0.3)
+    assert sizes[0] >= 0.3 > sizes[0] / np.sqrt(2) * 1.0001
+    assert all(b == 2 * a for a, b in zip(sizes[:-2], sizes[2:], strict=True))
+    np.testing.assert_allclose(np.diff(np.log(sizes)), np.log(np.sqrt(2)))
+
+
+def test_distinct_voxels_are_numpys_unique_rows():
+    ijk = np.random.default_rng(3).integers(-5, 5, (500, 3))
+    voxels, inverse = distinct_voxels(ijk)
+    expected, expected_inverse = np.unique(ijk, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(voxels, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse.ravel())
 
 
 def test_xy_spacing_of_a_regular_grid():

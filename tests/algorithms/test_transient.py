@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from algorithms.errors import ParameterError
+from algorithms.linked import radius_components
 from algorithms.transient import (
     cluster_decisions,
-    cluster_labels,
     detect_transient,
     floating_clusters,
-    linked_components,
     neighbour_table,
     persistent_points,
     point_facts,
@@ -264,23 +266,39 @@ def test_facts_of_strips_and_clusters_over_the_file_decide_as_the_whole_cloud(st
              for side in scan_line_sides(scan_line_neighbours(t, source), facts["persistent"])]
     clusters, n_comp = cluster_decisions(
         xyz[single], {name: facts[name][single] for name in ("touches", "covered")},
-        tuple(sides), radius=radius, max_extent=max_extent, block_points=50)
+        tuple(sides), radius=radius, max_extent=max_extent)
     score = np.zeros(len(t))
     score[single] = np.where(clusters.flagged, 2.0, 1.0)
     np.testing.assert_array_equal(score, whole.score)
     assert n_comp > 1 and int(clusters.wide.sum()) == whole.info["single_epoch_wide"]
 
 
-def test_components_found_block_by_block_are_the_whole_sets():
-    """The blocks' components joined through their shared points: the same partition as one
-    connected-components pass over every link."""
+def pair_components(xyz: np.ndarray, radius: float) -> tuple[int, np.ndarray]:
+    """Components of the explicit list of every link (a k-d tree's pairs within radius)."""
+    pairs = cKDTree(xyz).query_pairs(radius, output_type="ndarray")
+    m = len(xyz)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+    return connected_components(graph, directed=False)
+
+
+@pytest.mark.parametrize("radius", [0.05, 0.12, 0.4])
+def test_components_without_the_list_of_links_are_those_of_every_link(radius):
+    """Cells, joins and early stops: the same partition as one connected-components pass over
+    every link, on sparse points, a dense pile (a vehicle standing still) and a thin chain."""
     rng = np.random.default_rng(9)
     xyz = np.vstack([rng.uniform(0, 6, (1500, 3)) * [1, 1, 0.1],
+                     rng.normal([3, 3, 2], 0.05, (400, 3)),  # dense: many links a point
                      np.column_stack([np.linspace(0, 6, 200), np.full(200, 3.0),
-                                      np.full(200, 0.05)])])  # a chain across every block
-    radius = 0.12
-    n_ref, ref = cluster_labels(xyz, np.arange(len(xyz)), radius)
-    n_got, got = linked_components(xyz, radius, block_points=40)
+                                      np.full(200, 0.05)])])
+    n_ref, ref = pair_components(xyz, radius)
+    n_got, got = radius_components(xyz, radius)
     assert n_got == n_ref and 1 < n_ref < len(xyz)
     pairs = np.unique(np.column_stack([ref, got]), axis=0)  # one to one
     assert len(pairs) == n_ref == len(np.unique(pairs[:, 1]))
+
+
+def test_points_exactly_one_radius_apart_are_linked():
+    xyz = np.array([[0.0, 0, 0], [0.25, 0, 0], [0.5, 0, 0], [2.0, 0, 0]])
+    n, label = radius_components(xyz, 0.25)
+    assert n == 2 and label[0] == label[1] == label[2] != label[3]
+    assert radius_components(np.zeros((0, 3)), 0.3)[0] == 0
