@@ -294,10 +294,9 @@ def load_region(tiles: TileSet, cell: tuple[int, int], halo: float) -> tuple[np.
                   if abs(c[0] - cell[0]) <= ring and abs(c[1] - cell[1]) <= ring]
     parts = [read_cell(tiles, c) for c in sorted(wanted)]
     rec = np.concatenate(parts) if parts else np.zeros(0, dtype=POINT_DTYPE)
-    if ring is not None:
-        d = outside_distance(rec["xyz"][:, :2], tiles, cell)
-        rec = rec[d <= halo]
-    rec = rec[np.argsort(rec["index"], kind="stable")]  # file order, as the whole run sees it
+    keep = (np.flatnonzero(outside_distance(rec["xyz"][:, :2], tiles, cell) <= halo)
+            if ring is not None else np.arange(len(rec)))
+    rec = rec[keep[np.argsort(rec["index"][keep], kind="stable")]]  # file order, as whole
     return rec, len(rec) == tiles.points
 
 
@@ -306,8 +305,10 @@ def outside_distance(xy: np.ndarray, tiles: TileSet, cell: tuple[int, int]) -> n
     (minus the distance to its nearest edge)."""
     lo = tiles.anchor + np.asarray(cell, dtype=np.float64) * tiles.tile_size
     hi = lo + tiles.tile_size
-    beyond = np.maximum(lo - xy, xy - hi)  # per axis: > 0 outside, -(distance to an edge) in
-    return np.max(beyond, axis=1)  # outside: the largest positive part; inside: the nearest edge
+    x, y = xy[:, 0], xy[:, 1]  # one axis at a time: columns of a record array are strided
+    # per axis: > 0 outside, -(distance to an edge) inside; outside: the largest positive
+    # part, inside: minus the nearest edge's distance
+    return np.maximum(np.maximum(lo[0] - x, x - hi[0]), np.maximum(lo[1] - y, y - hi[1]))
 
 
 def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = None) -> Cloud:
