@@ -63,6 +63,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from algorithms.cells import cell_keys, offset_keys
 from algorithms.checks import check_xyz
 from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
@@ -349,13 +350,11 @@ def voxel_pieces(xyz: np.ndarray, size: float, origin: np.ndarray | None = None)
 def distinct_voxels(ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct rows (m, 3) of the voxel indices ``ijk`` (n, 3) int, in order, and the row
     of each (n,): ``np.unique(ijk, axis=0, return_inverse=True)`` by one int64 key a voxel."""
-    low = ijk.min(axis=0)
-    dims = ijk.max(axis=0) - low + 1
-    key = ((ijk[:, 0] - low[0]) * dims[1] + (ijk[:, 1] - low[1])) * dims[2] + (ijk[:, 2] - low[2])
-    keys, inverse = np.unique(key, return_inverse=True)
-    rest, k = np.divmod(keys, dims[2])
-    i, j = np.divmod(rest, dims[1])
-    return np.column_stack([i + low[0], j + low[1], k + low[2]]), inverse.ravel()
+    keys, inverse = np.unique(cell_keys(ijk, reach=0)[0], return_inverse=True)
+    inverse = inverse.ravel()
+    voxels = np.empty((len(keys), 3), dtype=np.int64)
+    voxels[inverse] = ijk  # every point of a voxel writes the same indices
+    return voxels, inverse
 
 
 def voxel_components(voxels: np.ndarray) -> np.ndarray:
@@ -367,14 +366,12 @@ def voxel_components(voxels: np.ndarray) -> np.ndarray:
     m = len(voxels)
     if m == 0:
         return np.zeros(0, dtype=np.int64)
-    ijk = voxels - voxels.min(axis=0) + 1
-    dims = ijk.max(axis=0) + 2
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    key, strides = cell_keys(voxels, reach=1)
     order = np.argsort(key)
     key = key[order]
     rows, cols = [], []
-    for di, dj, dk in _FORWARD:
-        wanted = key + (di * dims[1] + dj) * dims[2] + dk
+    for step in offset_keys(_FORWARD, strides):
+        wanted = key + step
         pos = np.minimum(np.searchsorted(key, wanted), m - 1)
         hit = key[pos] == wanted
         rows.append(order[hit])

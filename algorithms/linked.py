@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from algorithms.cells import cell_keys, offset_keys
 from algorithms.jit import njit
 
 #: Cell edge as a share of the radius: the diagonal sqrt(3) x edge stays under the radius.
@@ -38,12 +39,11 @@ def radius_components(xyz: np.ndarray, radius: float) -> tuple[int, np.ndarray]:
     if not radius > 0:
         raise ValueError("radius must be > 0")
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
-    ijk = np.floor((xyz - xyz.min(axis=0)) / (radius * CELL_SHARE)).astype(np.int64) + 2
-    dims = ijk.max(axis=0) + 3  # two empty cells on each side: an offset never wraps around
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    ijk = np.floor((xyz - xyz.min(axis=0)) / (radius * CELL_SHARE)).astype(np.int64)
+    key, strides = cell_keys(ijk, reach=2)
     order = np.argsort(key, kind="stable")
     keys, starts = np.unique(key[order], return_index=True)
-    offsets = (_FORWARD[:, 0] * dims[1] + _FORWARD[:, 1]) * dims[2] + _FORWARD[:, 2]
+    offsets = offset_keys(_FORWARD, strides)
     root = _join_cells(xyz[order], keys, np.r_[starts, n].astype(np.int64), offsets,
                        float(radius) ** 2)
     roots, label = np.unique(root, return_inverse=True)

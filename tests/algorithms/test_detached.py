@@ -237,6 +237,19 @@ def test_distinct_voxels_are_numpys_unique_rows():
     expected, expected_inverse = np.unique(ijk, axis=0, return_inverse=True)
     np.testing.assert_array_equal(voxels, expected)
     np.testing.assert_array_equal(inverse, expected_inverse.ravel())
+    far = np.vstack([ijk, [[10 ** 9, -10 ** 9, 10 ** 9]]])  # one key only once squeezed
+    voxels, inverse = distinct_voxels(far)
+    expected, expected_inverse = np.unique(far, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(voxels, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse.ravel())
+
+
+def test_voxel_pieces_with_a_stray_point_far_away():
+    """A return at the projection's origin beside a survey 500 km east: the same pieces."""
+    rng = np.random.default_rng(13)
+    xyz = np.vstack([rough_terrain(13, 200) + [500_000.0, 5_400_000.0, 0.0], [[0.0, 0.0, 0.0]]])
+    for size in (1e-6, 0.7):
+        assert same_partition(voxel_pieces(xyz, size), slow_pieces(xyz, size))
 
 
 def test_xy_spacing_of_a_regular_grid():

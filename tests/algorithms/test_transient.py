@@ -302,3 +302,16 @@ def test_points_exactly_one_radius_apart_are_linked():
     n, label = radius_components(xyz, 0.25)
     assert n == 2 and label[0] == label[1] == label[2] != label[3]
     assert radius_components(np.zeros((0, 3)), 0.3)[0] == 0
+
+
+def test_components_with_a_stray_point_far_away():
+    """Fine cells and one return kilometres off (a point at the projection's origin): keys that
+    would overflow int64 are squeezed, the partition is still that of every link."""
+    rng = np.random.default_rng(4)
+    xyz = np.vstack([rng.uniform(0, 2, (600, 3)) + [500_000.0, 5_400_000.0, 100.0],
+                     [[0.0, 0.0, 0.0]]])
+    n_ref, ref = pair_components(xyz, 0.02)
+    n_got, got = radius_components(xyz, 0.02)
+    assert n_got == n_ref and ref[-1] not in ref[:-1]
+    pairs = np.unique(np.column_stack([ref, got]), axis=0)
+    assert len(pairs) == n_ref == len(np.unique(pairs[:, 1]))
