@@ -61,5 +61,5 @@ def _squeezed_axis(values: np.ndarray, reach: int) -> np.ndarray:
 
 
 def offset_keys(offsets: np.ndarray, strides: np.ndarray) -> np.ndarray:
-    """(m,) int64 key offset of each cell offset (m, 3) int under ``strides`` (:func:`cell_keys`)."""
+    """(m,) int64 key step of each cell offset (m, 3) int under ``strides`` (:func:`cell_keys`)."""
     return np.asarray(offsets, dtype=np.int64) @ strides

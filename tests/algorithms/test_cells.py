@@ -27,7 +27,8 @@ def test_key_differences_are_exactly_the_neighbour_offsets(reach, far):
     assert key.dtype == np.int64 and key.max() < KEY_LIMIT
     span = range(-reach, reach + 1)
     offsets = np.array(list(itertools.product(span, span, span)))
-    step = dict(zip(offset_keys(offsets, strides).tolist(), map(tuple, offsets.tolist())))
+    step = dict(zip(offset_keys(offsets, strides).tolist(), map(tuple, offsets.tolist()),
+                    strict=True))
     assert len(step) == len(offsets)  # no two offsets share a key step
     for a in range(len(ijk)):
         diff = ijk - ijk[a]

@@ -246,7 +246,6 @@ def test_distinct_voxels_are_numpys_unique_rows():
 
 def test_voxel_pieces_with_a_stray_point_far_away():
     """A return at the projection's origin beside a survey 500 km east: the same pieces."""
-    rng = np.random.default_rng(13)
     xyz = np.vstack([rough_terrain(13, 200) + [500_000.0, 5_400_000.0, 0.0], [[0.0, 0.0, 0.0]]])
     for size in (1e-6, 0.7):
         assert same_partition(voxel_pieces(xyz, size), slow_pieces(xyz, size))
