@@ -60,6 +60,15 @@ def _squeezed_axis(values: np.ndarray, reach: int) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(steps)])[inverse.ravel()]
 
 
+def forward_offsets(reach: int) -> np.ndarray:
+    """(m, 3) int64: the cell offsets of at most ``reach`` along every axis, one of each opposite
+    pair and not (0, 0, 0): those > (0, 0, 0) in lexicographic order (13 for reach 1, 62 for 2).
+    Visiting them from every cell visits each pair of neighbouring cells once."""
+    span = range(-reach, reach + 1)
+    return np.array([(i, j, k) for i in span for j in span for k in span if (i, j, k) > (0, 0, 0)],
+                    dtype=np.int64).reshape(-1, 3)
+
+
 def offset_keys(offsets: np.ndarray, strides: np.ndarray) -> np.ndarray:
     """(m,) int64 key step of each cell offset (m, 3) int under ``strides`` (:func:`cell_keys`)."""
     return np.asarray(offsets, dtype=np.int64) @ strides

@@ -63,7 +63,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from algorithms.cells import cell_keys, offset_keys
+from algorithms.cells import cell_keys, forward_offsets, offset_keys
 from algorithms.checks import check_xyz
 from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
@@ -325,11 +325,6 @@ def grid_index(coords: np.ndarray, size: float, origin: np.ndarray) -> np.ndarra
     return np.floor((coords[:, :d] - origin) / size).astype(np.int64)
 
 
-#: The 13 voxel offsets that, with their opposites, make a voxel's 26 neighbours.
-_FORWARD = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
-                     if (i, j, k) > (0, 0, 0)])
-
-
 def voxel_pieces(xyz: np.ndarray, size: float, origin: np.ndarray | None = None) -> np.ndarray:
     """Pieces of a cloud: points joined through occupied voxels that share a face, an edge or
     a corner (26-connectivity). Points closer than ``size`` always share a piece; points more
@@ -370,7 +365,7 @@ def voxel_components(voxels: np.ndarray) -> np.ndarray:
     order = np.argsort(key)
     key = key[order]
     rows, cols = [], []
-    for step in offset_keys(_FORWARD, strides):
+    for step in offset_keys(forward_offsets(1), strides):
         wanted = key + step
         pos = np.minimum(np.searchsorted(key, wanted), m - 1)
         hit = key[pos] == wanted

@@ -19,15 +19,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from algorithms.cells import cell_keys, offset_keys
+from algorithms.cells import cell_keys, forward_offsets, offset_keys
 from algorithms.jit import njit
 
 #: Cell edge as a share of the radius: the diagonal sqrt(3) x edge stays under the radius.
 CELL_SHARE = (1.0 - 1e-9) / np.sqrt(3.0)
-#: The cells two apart or nearer along every axis, one of each opposite pair, the cell itself
-#: excluded: (dx, dy, dz) > (0, 0, 0) in lexicographic order.
-_FORWARD = np.array([(i, j, k) for i in range(-2, 3) for j in range(-2, 3) for k in range(-2, 3)
-                     if (i, j, k) > (0, 0, 0)], dtype=np.int64)
+#: Cells this far apart along each axis may hold linked points (radius / edge < 2).
+LINK_REACH = 2
 
 
 def radius_components(xyz: np.ndarray, radius: float) -> tuple[int, np.ndarray]:
@@ -40,10 +38,10 @@ def radius_components(xyz: np.ndarray, radius: float) -> tuple[int, np.ndarray]:
         raise ValueError("radius must be > 0")
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     ijk = np.floor((xyz - xyz.min(axis=0)) / (radius * CELL_SHARE)).astype(np.int64)
-    key, strides = cell_keys(ijk, reach=2)
+    key, strides = cell_keys(ijk, reach=LINK_REACH)
     order = np.argsort(key, kind="stable")
     keys, starts = np.unique(key[order], return_index=True)
-    offsets = offset_keys(_FORWARD, strides)
+    offsets = offset_keys(forward_offsets(LINK_REACH), strides)
     root = _join_cells(xyz[order], keys, np.r_[starts, n].astype(np.int64), offsets,
                        float(radius) ** 2)
     roots, label = np.unique(root, return_inverse=True)

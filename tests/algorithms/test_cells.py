@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from algorithms.cells import KEY_LIMIT, cell_keys, offset_keys
+from algorithms.cells import KEY_LIMIT, cell_keys, forward_offsets, offset_keys
 
 
 def cells_with_strays(seed: int, far: float) -> np.ndarray:
@@ -53,3 +53,12 @@ def test_grid_beyond_one_key_even_squeezed_is_refused():
     with pytest.raises(ValueError, match="larger cells"):
         cell_keys(ijk, 0)
     assert cell_keys(np.zeros((0, 3), dtype=np.int64), 1)[0].shape == (0,)
+
+
+@pytest.mark.parametrize("reach", [1, 2])
+def test_forward_offsets_are_one_of_each_opposite_pair(reach):
+    forward = forward_offsets(reach)
+    span = range(-reach, reach + 1)
+    every = {o for o in itertools.product(span, span, span) if o != (0, 0, 0)}
+    halves = {tuple(o) for o in forward.tolist()} | {tuple(o) for o in (-forward).tolist()}
+    assert halves == every and len(forward) == len(every) // 2
