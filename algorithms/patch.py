@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 
 from algorithms.checks import check_xyz
 from algorithms.errors import ParameterError
+from algorithms.jit import njit, prange
 from algorithms.params import Parameters, param
 from algorithms.quadric import (
     COLLINEAR,
@@ -119,9 +120,17 @@ def frame_shift(xyz: np.ndarray) -> np.ndarray:
     return np.floor(xyz.min(axis=0) / SHIFT_GRID) * SHIFT_GRID
 
 
+def neighbour_tree(xyz: np.ndarray) -> cKDTree:
+    """The k-d tree the patches are queried in: leaves of 32 points split at the midpoint, not
+    the median (builds and answers k = 40 queries about a third faster than scipy's default;
+    the neighbours found do not depend on the tree)."""
+    return cKDTree(xyz, leafsize=32, balanced_tree=False)
+
+
 def nearest_in_order(tree: cKDTree, xyz: np.ndarray, query: np.ndarray, k: int) -> np.ndarray:
-    """(m, k) the k nearest points of ``xyz[query]``, each row the query's own point first and
-    the others by index; points tied at the k-th distance are taken by index.
+    """(m, k) the k nearest points of ``xyz[query]``, each row the query's own point first (the
+    lowest index among its copies) and the others by index; points tied at the k-th distance
+    are taken by index.
 
     So the patch of a point depends on the points alone, not on the k-d tree's build (a tile
     and the whole cloud index the same points in the same order), and its sums run in one
@@ -134,9 +143,34 @@ def nearest_in_order(tree: cKDTree, xyz: np.ndarray, query: np.ndarray, k: int) 
         rows = np.flatnonzero(dist[:, k - 1] == dist[:, k])
         if rows.size:
             nbr[rows, :k] = _ties_by_index(tree, xyz, query[rows], dist[rows, k - 1], k)
-    nbr = nbr[:, :k]
-    rest = np.sort(nbr[:, 1:], axis=1)
-    return np.ascontiguousarray(np.column_stack([nbr[:, 0], rest]))
+    nbr = np.ascontiguousarray(nbr[:, :k])
+    _own_first_then_by_index(nbr, np.ascontiguousarray(dist[:, :k] == 0.0))
+    return nbr
+
+
+@njit(cache=True, parallel=True)
+def _own_first_then_by_index(rows: np.ndarray, at_query: np.ndarray) -> None:
+    """Order each row of ``rows`` (m, k) in place: first the lowest index among the points at
+    the query's own coordinates (``at_query`` (m, k)), then the others by index.
+
+    Copies of a point (a scanner standing still) come from the k-d tree in an order of its
+    build; by index, every copy's patch holds its points in one order (the same sums, the same
+    bits), and so does a tile's. Insertion sort: k is tens.
+    """
+    for r in prange(rows.shape[0]):
+        row = rows[r]
+        at = 0
+        for i in range(row.size):
+            if at_query[r, i] and row[i] < row[at]:
+                at = i
+        row[0], row[at] = row[at], row[0]
+        for i in range(2, row.size):
+            value = row[i]
+            j = i - 1
+            while j >= 1 and row[j] > value:
+                row[j + 1] = row[j]
+                j -= 1
+            row[j + 1] = value
 
 
 def _ties_by_index(tree: cKDTree, xyz: np.ndarray, points: np.ndarray, radius: np.ndarray,
@@ -213,7 +247,7 @@ def detect_patch(
         return DetectorResult(score, np.zeros(n, dtype=bool), crit, info)
 
     local = pts - frame_shift(pts)  # the same numbers for any subset of the same cloud
-    tree = cKDTree(local)
+    tree = neighbour_tree(local)
     first, location = distinct_locations(local)
     copies = np.bincount(location)  # points at each distinct location
     location_score = np.full(first.size, np.nan)

@@ -170,10 +170,10 @@ def t_statistic(v: float, sigma0: float, q_vv: float, redundancy: int) -> float:
 
 # ---------------------------------------------------------------------------------------------
 # Normal equations from weighted moments: N[p, q] = sum_i p_i B_ip B_iq, and every product of two
-# entries of eq. 23 is one of the 35 monomials x^i y^j z^l with i + j + l <= 4. Summing the 35
-# weighted monomials (formed per block of points from their powers, in loops the compiler
-# vectorises) instead of the 55 distinct entries of N is what makes the per-point cost small;
-# nothing of size n x 35 is stored.
+# entries of eq. 23 is one of the 35 monomials x^i y^j z^l with i + j + l <= 4. The monomials of a
+# block of points are formed once per fit (each is a lower one times x, y or z), and every
+# adjustment sums them with its weights (loops the compiler vectorises): 35 multiply-adds per
+# point instead of the 55 distinct entries of N. At most _BLOCK x 35 numbers are held.
 # ---------------------------------------------------------------------------------------------
 
 #: Exponents (x, y, z) of the 10 entries of B_i (eq. 23), in parameter order a1..a10.
@@ -200,45 +200,58 @@ _N_INDEX = np.array(
 )
 
 
-#: Points per block of the moment sums: the block's powers (3 x 5 x 256 floats, 30 kB) stay in
-#: the cache while the 35 sums run over them.
+#: Each monomial of degree >= 1 as a lower monomial times one coordinate: _PARENT[j] is the
+#: row of the lower one, _FACTOR[j] the row of x, y or z (monomials 1, 2, 3).
+_PARENT = np.zeros(_N_MONO, dtype=np.int64)
+_FACTOR = np.zeros(_N_MONO, dtype=np.int64)
+for _j in range(1, _N_MONO):
+    _axis = int(np.flatnonzero(_MONOMIALS[_j])[0])  # lower the first exponent that is not 0
+    _lower = _MONOMIALS[_j].copy()
+    _lower[_axis] -= 1
+    _PARENT[_j] = int(np.flatnonzero((_MONOMIALS == _lower).all(1))[0])
+    _FACTOR[_j] = 1 + _axis
+del _j, _axis, _lower
+#: Rows of x, y, z, x^2, y^2, z^2 among the monomials (what eqs. 24-27 read).
+_X, _Y, _Z = 1, 2, 3
+_XX, _YY, _ZZ = (int(np.flatnonzero((_MONOMIALS == e).all(1))[0])
+                 for e in ([2, 0, 0], [0, 2, 0], [0, 0, 2]))  # fmt: skip
+
+#: Points per block of the moment sums: the block's monomials (35 x 256 floats, 70 kB) are
+#: formed once and summed by every adjustment.
 _BLOCK = 256
 
 
-@njit(cache=True, inline="always")
-def _block_powers(xyz: np.ndarray, start: int, nb: int, powers: np.ndarray) -> None:
-    """powers[c, e, i] = xyz[start + i, c] ** e for e = 0..4 and the nb points of the block.
-
-    Coordinate by coordinate and power by power, so that every loop is contiguous."""
-    for c in range(3):
-        p0, p1, p2, p3, p4 = powers[c, 0], powers[c, 1], powers[c, 2], powers[c, 3], powers[c, 4]
+@njit(cache=True)
+def _block_monomials(xyz: np.ndarray, start: int, nb: int, mono: np.ndarray) -> None:
+    """mono[j, i] = monomial j of point start + i (x^ex_j y^ey_j z^ez_j), for the nb points of
+    one block; each row is a lower row times x, y or z, so every loop is contiguous."""
+    for i in range(nb):
+        mono[0, i] = 1.0
+        mono[_X, i] = xyz[start + i, 0]
+        mono[_Y, i] = xyz[start + i, 1]
+        mono[_Z, i] = xyz[start + i, 2]
+    for j in range(_Z + 1, _N_MONO):
+        lower = mono[_PARENT[j]]
+        factor = mono[_FACTOR[j]]
+        row = mono[j]
         for i in range(nb):
-            p1[i] = xyz[start + i, c]
-        for i in range(nb):
-            v = p1[i]
-            v2 = v * v
-            p0[i] = 1.0
-            p2[i] = v2
-            p3[i] = v2 * v
-            p4[i] = v2 * v2
+            row[i] = lower[i] * factor[i]
 
 
 @njit(cache=True, fastmath={"reassoc", "contract"})
 def _block_moments(
-    powers: np.ndarray, weight: np.ndarray, nb: int, count: int, out: np.ndarray
+    mono: np.ndarray, weight: np.ndarray, nb: int, count: int, out: np.ndarray
 ) -> None:
-    """out[j] += sum_i weight[i] * monomial j of point i, over the nb points of one block.
+    """out[j] += sum_i weight[i] * mono[j, i], over the nb points of one block.
 
     ``reassoc`` lets the compiler split each sum into vector lanes (the order of the additions
     is the only difference from a plain loop).
     """
     for j in range(count):
-        px = powers[0, _MONOMIALS[j, 0]]
-        py = powers[1, _MONOMIALS[j, 1]]
-        pz = powers[2, _MONOMIALS[j, 2]]
+        row = mono[j]
         acc = 0.0
         for i in range(nb):
-            acc += weight[i] * px[i] * py[i] * pz[i]
+            acc += weight[i] * row[i]
         out[j] += acc
 
 
@@ -248,15 +261,15 @@ def weighted_moments(xyz: np.ndarray, weight: np.ndarray, count: int, out: np.nd
 
     The monomials are ordered by degree, so ``count`` 35 gives the entries of N = B^T P B and
     ``count`` 10 those of B^T u (the entries of eq. 23). Rows with weight 0 add nothing. The
-    monomials are formed per block of points from the block's powers; only the order of the
-    additions differs from a plain loop over the points.
+    monomials are formed per block of points; only the order of the additions differs from a
+    plain loop over the points.
     """
-    powers = np.empty((3, 5, _BLOCK))
+    mono = np.empty((_N_MONO, _BLOCK))
     out[:count] = 0.0
     for start in range(0, xyz.shape[0], _BLOCK):
         nb = min(_BLOCK, xyz.shape[0] - start)
-        _block_powers(xyz, start, nb, powers)
-        _block_moments(powers, weight[start:start + nb], nb, count, out)
+        _block_monomials(xyz, start, nb, mono)
+        _block_moments(mono, weight[start:start + nb], nb, count, out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -270,8 +283,21 @@ def _solve(m: np.ndarray, r: np.ndarray) -> bool:
 
     m is destroyed. Returns False when a pivot is exactly zero or not finite (singular system).
     """
-    s = m.shape[0]
-    c = r.shape[1]
+    return _eliminate(m, r, m.shape[0], r.shape[1])
+
+
+@njit(cache=True)
+def _solve_bordered(m: np.ndarray, r: np.ndarray) -> bool:
+    """:func:`_solve` for the (11, 11) bordered normal equations and one right-hand side r
+    (11, 1): the same operations, with sizes the compiler knows (the loops unroll; a third of
+    an adjustment's time otherwise)."""
+    return _eliminate(m, r, N_PARAMS + 1, 1)
+
+
+@njit(cache=True, inline="always")
+def _eliminate(m: np.ndarray, r: np.ndarray, s: int, c: int) -> bool:
+    """Gaussian elimination with partial pivoting of the leading s x s of m against the c
+    columns of r, in place (r becomes the solution); False on a pivot zero or not finite."""
     for col in range(s):
         piv = col
         best = abs(m[col, col])
@@ -431,7 +457,7 @@ def _adjust(
     rhs: np.ndarray,
     w: np.ndarray,
     p_w: np.ndarray,
-    powers: np.ndarray,
+    mono: np.ndarray,
     block_w: np.ndarray,
     acc: np.ndarray,
 ) -> bool:
@@ -440,10 +466,10 @@ def _adjust(
     Leaves the 35 monomial sums of N in acc[:35] (:func:`_bordered_matrix` rebuilds the bordered
     matrix from them and ``a``) and w_i (eq. 24), p_i = 1/sigma_i^2 (eq. 30) of the active rows
     in ``w`` and ``p_w``, for the residuals and cofactors of the last adjustment.
-    N = B^T P B and u = B^T P w are summed block by block from the points' powers
-    (:func:`_block_moments`). Scratch: ``m`` (11, 11); ``powers`` (3, 5, _BLOCK), which holds
-    the powers of all points already when n <= _BLOCK (the caller computes them once per fit),
-    ``block_w`` (2, _BLOCK) and ``acc`` (45,).
+    N = B^T P B and u = B^T P w are summed block by block from the points' monomials
+    (:func:`_block_moments`). Scratch: ``m`` (11, 11); ``mono`` (35, min(n, _BLOCK)), which
+    holds the monomials of all points already when n <= _BLOCK (the caller forms them once per
+    fit), ``block_w`` (2, _BLOCK) and ``acc`` (45,).
     """
     acc[:] = 0.0
     n_mono, u = acc[:_N_MONO], acc[_N_MONO:]
@@ -451,20 +477,20 @@ def _adjust(
     for start in range(0, xyz.shape[0], _BLOCK):
         nb = min(_BLOCK, xyz.shape[0] - start)
         if xyz.shape[0] > _BLOCK:
-            _block_powers(xyz, start, nb, powers)
+            _block_monomials(xyz, start, nb, mono)
         if not _block_weights(
-            powers, nb, active[start:], var, a, w[start:], p_w[start:], p_b, pw_b
+            mono, nb, active[start:], var, a, w[start:], p_w[start:], p_b, pw_b
         ):
             return False
-        _block_moments(powers, p_b, nb, _N_MONO, n_mono)  # N as 35 weighted monomial sums
-        _block_moments(powers, pw_b, nb, N_PARAMS, u)  # B^T P w: eq. 23's entries are the first 10
+        _block_moments(mono, p_b, nb, _N_MONO, n_mono)  # N as 35 weighted monomial sums
+        _block_moments(mono, pw_b, nb, N_PARAMS, u)  # B^T P w: eq. 23's entries are the first 10
     _bordered_matrix(n_mono, a, m)
     aa = 0.0
     for p in range(N_PARAMS):
         rhs[p, 0] = -u[_N_INDEX[p, 9]]
         aa += a[p] * a[p]
     rhs[N_PARAMS, 0] = 0.5 * (1.0 - aa)  # eq. 19 linearised: 2 a0.da = 1 - a0.a0
-    return _solve(m, rhs)
+    return _solve_bordered(m, rhs)
 
 
 @njit(cache=True)
@@ -481,7 +507,7 @@ def _bordered_matrix(n_mono: np.ndarray, a: np.ndarray, m: np.ndarray) -> None:
 
 @njit(cache=True, error_model="numpy")  # 1/0 of an inactive row: inf, unused, not an exception
 def _block_weights(
-    powers: np.ndarray,
+    mono: np.ndarray,
     nb: int,
     active: np.ndarray,
     var: np.ndarray,
@@ -502,8 +528,8 @@ def _block_weights(
     a0, a1, a2, a3, a4 = a[0], a[1], a[2], a[3], a[4]
     a5, a6, a7, a8, a9 = a[5], a[6], a[7], a[8], a[9]
     vx, vy, vz = var[0], var[1], var[2]
-    x, y, z = powers[0, 1], powers[1, 1], powers[2, 1]
-    xx, yy, zz = powers[0, 2], powers[1, 2], powers[2, 2]
+    x, y, z = mono[_X], mono[_Y], mono[_Z]
+    xx, yy, zz = mono[_XX], mono[_YY], mono[_ZZ]
     for i in range(nb):
         w[i] = (
             a0 * xx[i] + a1 * yy[i] + a2 * zz[i] + a3 * x[i] * y[i] + a4 * x[i] * z[i]
@@ -680,15 +706,15 @@ def _fit_one(
         return math.nan, 0, TOO_FEW_POINTS
     if _nearly_collinear(xyz, active):
         return math.nan, 0, COLLINEAR
-    powers = np.empty((3, 5, _BLOCK))
+    mono = np.empty((_N_MONO, min(n, _BLOCK)))
     block_w = np.empty((2, _BLOCK))
     acc = np.empty(_N_MONO + N_PARAMS)
     if n <= _BLOCK:
-        _block_powers(xyz, 0, n, powers)  # fixed for the whole fit
+        _block_monomials(xyz, 0, n, mono)  # fixed for the whole fit
         for i in range(n):
             block_w[0, i] = 1.0 if active[i] else 0.0
         acc[:_N_MONO] = 0.0
-        _block_moments(powers, block_w[0], n, _N_MONO, acc)  # as weighted_moments does
+        _block_moments(mono, block_w[0], n, _N_MONO, acc)  # as weighted_moments does
     else:
         weighted_moments(xyz, active.astype(np.float64), _N_MONO, acc)
     start = np.empty(N_PARAMS)
@@ -727,7 +753,7 @@ def _fit_one(
         for _ in range(budget):
             iterations += 1
             a_lin[:] = a
-            solved = _adjust(xyz, active, var, a, m, rhs, w, p_w, powers, block_w, acc)
+            solved = _adjust(xyz, active, var, a, m, rhs, w, p_w, mono, block_w, acc)
             if not solved:
                 break
             step = 0.0

@@ -95,6 +95,33 @@ def test_nearest_in_order_is_the_brute_force_order():
         assert got[i, 0] == i and list(got[i, 1:]) == sorted(near[1:])
 
 
+def test_nearest_in_order_with_copies_follows_the_points_not_the_tree():
+    # A scanner standing still repeats points: every copy of a point gets the same row, its
+    # lowest-index copy first, and the rows are the same from any k-d tree build.
+    from scipy.spatial import cKDTree
+
+    from algorithms.patch import nearest_in_order, neighbour_tree
+
+    rng = np.random.default_rng(11)
+    base = rng.random((300, 3))
+    xyz = np.concatenate([base, base[:40], base[:40], base[rng.choice(300, 60)]])
+    query = np.arange(len(xyz))
+    rows = [
+        nearest_in_order(tree, xyz, query, 20)
+        for tree in (cKDTree(xyz), neighbour_tree(xyz), cKDTree(xyz, leafsize=2))
+    ]
+    np.testing.assert_array_equal(rows[0], rows[1])
+    np.testing.assert_array_equal(rows[0], rows[2])
+    got = rows[0]
+    for i in range(len(xyz)):
+        d2 = np.sum((xyz - xyz[i]) ** 2, axis=1)
+        near = np.lexsort((np.arange(len(xyz)), d2))[:20]  # by distance, ties by index
+        assert got[i, 0] == near[0] and list(got[i, 1:]) == sorted(near[1:])
+        assert np.array_equal(xyz[got[i, 0]], xyz[i])
+        copies = np.flatnonzero(np.all(xyz == xyz[i], axis=1))
+        assert all(np.array_equal(got[c], got[i]) for c in copies)
+
+
 def test_shift_without_exact_grid_changes_nothing_measurable():
     rng = np.random.default_rng(4)
     xyz = gentle_surface(rng, n=1500)

@@ -318,7 +318,7 @@ def test_weighted_moments_match_a_plain_sum(n):
 def test_block_weights_equal_the_equations_point_by_point():
     # The vectorised w_i (eq. 24) and p_i (eq. 30) bit for bit against the same expressions
     # evaluated one point at a time; inactive rows weigh nothing and do not fail the block.
-    from algorithms.quadric import _block_powers, _block_weights, equivalent_variance, gradient
+    from algorithms.quadric import _block_monomials, _block_weights, equivalent_variance, gradient
 
     rng = np.random.default_rng(3)
     n = 40
@@ -326,10 +326,10 @@ def test_block_weights_equal_the_equations_point_by_point():
     active = rng.random(n) < 0.8
     a = rng.normal(size=10)
     var = np.array([0.004, 0.006, 0.005]) ** 2
-    powers = np.empty((3, 5, 256))
-    _block_powers(xyz, 0, n, powers)
+    mono = np.empty((35, n))
+    _block_monomials(xyz, 0, n, mono)
     w, p_w, p_b, pw_b = (np.full(n, np.nan) for _ in range(4))
-    assert _block_weights(powers, n, active, var, a, w, p_w, p_b, pw_b)
+    assert _block_weights(mono, n, active, var, a, w, p_w, p_b, pw_b)
     for i in range(n):
         x, y, z = xyz[i]
         wi = (a[0] * (x * x) + a[1] * (y * y) + a[2] * (z * z) + a[3] * x * y + a[4] * x * z
@@ -341,8 +341,8 @@ def test_block_weights_equal_the_equations_point_by_point():
         assert pw_b[i] == (pi * wi if active[i] else 0.0)
     flat = np.zeros(10)
     flat[9] = 1.0  # F = 1 everywhere: zero gradient, sigma_i^2 = 0
-    assert not _block_weights(powers, n, active, var, flat, w, p_w, p_b, pw_b)
-    assert _block_weights(powers, n, np.zeros(n, dtype=bool), var, flat, w, p_w, p_b, pw_b)
+    assert not _block_weights(mono, n, active, var, flat, w, p_w, p_b, pw_b)
+    assert _block_weights(mono, n, np.zeros(n, dtype=bool), var, flat, w, p_w, p_b, pw_b)
 
 def test_fit_masked_on_a_section_of_several_blocks_matches_slow_reference():
     # Sections are fitted block by block (256 points); 1,000 points with holes span four blocks.
