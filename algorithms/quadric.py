@@ -36,7 +36,8 @@ Facts of this model that matter to its users:
 
 * T_i <= sqrt(n - 9) always (a studentised residual with the internal sigma_0 cannot exceed the
   square root of the redundancy), so a patch of k points can only flag anything when sqrt(k - 9)
-  exceeds the critical value of t(k - 9) (:func:`min_patch_size`; 26 points at alpha = 0.001).
+  exceeds the critical value of t(k - 9) (:func:`algorithms.fit_outcome.min_patch_size`; 26
+  points at alpha = 0.001).
 * On flat ground the z^2 column of B is tiny, the algebraic start is already a pair of nearly
   coincident planes (a3 ~ 1) and the iteration converges linearly and slowly (contraction ~0.6 per
   step) towards a double plane; the noise is shared between the two sheets, so sigma_0 comes out
@@ -60,12 +61,17 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from algorithms.fit_outcome import (
+    COLLINEAR,
+    CONVERGED,
+    DOF_LOSS,
+    N_PARAMS,
+    NOT_CONVERGED,
+    SINGULAR,
+    TOO_FEW_POINTS,
+)
 from algorithms.jit import njit, prange
-from algorithms.stats import t_critical_value
 
-#: Unknowns of eq. 18 and the redundancy lost to them (10 parameters, 1 constraint).
-N_PARAMS = 10
-DOF_LOSS = 9
 #: Relative rounding allowed above the bound T_i <= sqrt(n - 9) before a T_i is distrusted.
 _T_BOUND_SLACK = 1e-6
 #: sigma_0 (the a-posteriori standard deviation of unit weight, eq. 30's weights) at or below
@@ -548,19 +554,6 @@ def _block_weights(
         p_b[i] = pi if active[i] else 0.0
         pw_b[i] = pi * w[i] if active[i] else 0.0
     return True
-
-
-# Fit outcome codes (QuadricFit.status): why a fit gives no T_i, for the detectors' statistics.
-#: The iteration converged: T_i (eq. 31) is valid.
-CONVERGED = 0
-#: ||da|| stayed above the tolerance through every stage of the iteration.
-NOT_CONVERGED = 1
-#: The points lie nearly on a line (:data:`COLLINEAR_RATIO`): no unique quadric.
-COLLINEAR = 2
-#: The bordered normal equations were singular or a weight of eq. 30 was zero or not finite.
-SINGULAR = 3
-#: No redundancy: at most 9 points (10 parameters, 1 constraint).
-TOO_FEW_POINTS = 4
 
 
 #: Points whose spread across their main direction is below this fraction of the spread along it
@@ -1071,17 +1064,3 @@ def _unit_norm(a: np.ndarray) -> None:
     norm = math.sqrt(norm)
     for q in range(N_PARAMS):
         a[q] /= norm
-
-
-def min_patch_size(alpha: float) -> int:
-    """Smallest n for which sqrt(n - 9) > t(n - 9) at ``alpha``: below it eq. 31 cannot flag."""
-    n = DOF_LOSS + 1
-    while not math.sqrt(n - DOF_LOSS) > t_critical_value(alpha, n - DOF_LOSS):
-        n += 1
-    return n
-
-
-def can_flag(n: int | np.ndarray, alpha: float) -> np.ndarray:
-    """True where a surface of n points can flag anything at ``alpha`` (sqrt(n-9) > t(n-9))."""
-    n = np.asarray(n)
-    return n >= min_patch_size(alpha)

@@ -10,7 +10,7 @@ from the surface of the fit before it (moved to the new centroid): the surface i
 
 Scores: a removed point keeps the T_i of the fit that removed it; a kept point gets its T_i in the
 last fit. A section that has fewer than the points needed for eq. 31 to flag anything at ``alpha``
-(see :func:`algorithms.quadric.min_patch_size`; never fewer than 10), or whose fit does not
+(see :func:`algorithms.fit_outcome.min_patch_size`; never fewer than 10), or whose fit does not
 converge, leaves its remaining points untested (NaN); points removed before stay flagged.
 Sections run in parallel (numba; the sections are shared among the threads by size).
 """
@@ -19,22 +19,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from algorithms.checks import check_xyz
-from algorithms.jit import njit, prange
+from algorithms.fit_outcome import DOF_LOSS, min_patch_size
 from algorithms.params import Parameters, param
 from algorithms.patch import SIGMA_DOC, UNTESTED_REASONS, Sigma, sigma_axes, untested_reasons
-from algorithms.quadric import (
-    CONVERGED,
-    DOF_LOSS,
-    N_PARAMS,
-    NOT_CONVERGED,
-    TOO_FEW_POINTS,
-    fit_masked,
-    min_patch_size,
-)
 from algorithms.result import DetectorResult
 from algorithms.stats import t_critical_value
 from algorithms.tiles import group_by_cell
@@ -58,125 +48,10 @@ class SectionParameters(Parameters):
 
 
 #: Section outcome: every remaining point tested (no outlier left, or ``max_iterations`` fits).
-_TESTED = 0
+TESTED = 0
 #: Section outcome: the last fit stopped for the reason of its fit status (algorithms.quadric);
 #: the section's remaining points are untested. Codes 1 + status.
-_STOPPED = 1
-
-
-@njit(cache=True)
-def _untested(active: np.ndarray, score: np.ndarray, critical: np.ndarray) -> None:
-    """Points still in a section whose next fit cannot be made are untested (NaN)."""
-    for i in range(active.shape[0]):
-        if active[i]:
-            score[i] = np.nan
-            critical[i] = np.nan
-
-
-@njit(cache=True)
-def _one_section(
-    xyz: np.ndarray,
-    var: np.ndarray,
-    crit_table: np.ndarray,
-    min_points: int,
-    max_fits: int,
-    max_iter: int,
-    tol: float,
-    accelerate: bool,
-    score: np.ndarray,
-    critical: np.ndarray,
-    flagged: np.ndarray,
-) -> tuple[int, int, int, bool]:
-    """Iterative fit-and-remove on one section's points (n, 3); fills score, critical and
-    flagged (n,): each point's T_i (eq. 31) and the critical value t(n' - 9) it was compared
-    with, n' the points in that fit.
-
-    Returns (outcome, fits made, adjustment iterations summed over the fits, whether the last
-    fit still removed points, i.e. ``max_fits`` ended the refitting). outcome is _TESTED, or
-    _STOPPED + the quadric fit status that stopped it (TOO_FEW_POINTS when fewer than
-    ``min_points`` remain).
-    """
-    n = xyz.shape[0]
-    active = np.ones(n, dtype=np.bool_)
-    params = np.empty(N_PARAMS)
-    centroid = np.empty(3)
-    last_params = np.empty(N_PARAMS)
-    last_centroid = np.empty(3)
-    v = np.empty(n)
-    t = np.empty(n)
-    n_active = n
-    fits = 0
-    iterations = 0
-    removed = 0
-    for _ in range(max_fits):
-        if n_active < min_points:
-            _untested(active, score, critical)
-            return _STOPPED + TOO_FEW_POINTS, fits, iterations, False
-        sigma0, it, status = fit_masked(
-            xyz, active, var, max_iter, tol, params, centroid, v, t, accelerate
-        )
-        fits += 1
-        iterations += it
-        if status == NOT_CONVERGED and fits > 1:
-            # a refit whose algebraic start leads nowhere starts from the surface it refines
-            sigma0, it, status = fit_masked(
-                xyz, active, var, max_iter, tol, params, centroid, v, t, accelerate,
-                last_params, last_centroid,
-            )
-            iterations += it
-        if status != CONVERGED:
-            _untested(active, score, critical)
-            return _STOPPED + status, fits, iterations, False
-        last_params[:] = params
-        last_centroid[:] = centroid
-        crit = crit_table[n_active - DOF_LOSS]
-        removed = 0
-        for i in range(n):
-            if active[i]:
-                score[i] = t[i]
-                critical[i] = crit if t[i] == t[i] else np.nan  # NaN T: untested
-                if t[i] > crit:
-                    flagged[i] = True
-                    active[i] = False
-                    removed += 1
-        n_active -= removed
-        if removed == 0:
-            break
-    return _TESTED, fits, iterations, removed > 0
-
-
-@njit(cache=True, parallel=True)
-def _all_sections(
-    xyz: np.ndarray,
-    offsets: np.ndarray,
-    bucket_offsets: np.ndarray,
-    bucket_sections: np.ndarray,
-    var: np.ndarray,
-    crit_table: np.ndarray,
-    min_points: int,
-    max_fits: int,
-    max_iter: int,
-    tol: float,
-    accelerate: bool,
-    score: np.ndarray,
-    critical: np.ndarray,
-    flagged: np.ndarray,
-    outcome: np.ndarray,
-    fits: np.ndarray,
-    iterations: np.ndarray,
-    capped: np.ndarray,
-) -> None:
-    """Run :func:`_one_section` on xyz[offsets[j]:offsets[j+1]] for every section j in parallel,
-    one thread per bucket: bucket b holds the sections bucket_sections[bucket_offsets[b]:
-    bucket_offsets[b + 1]] (see :func:`balanced_buckets`)."""
-    for b in prange(bucket_offsets.shape[0] - 1):
-        for s in range(bucket_offsets[b], bucket_offsets[b + 1]):
-            j = bucket_sections[s]
-            lo, hi = offsets[j], offsets[j + 1]
-            outcome[j], fits[j], iterations[j], capped[j] = _one_section(
-                xyz[lo:hi], var, crit_table, min_points, max_fits, max_iter, tol, accelerate,
-                score[lo:hi], critical[lo:hi], flagged[lo:hi],
-            )  # fmt: skip
+STOPPED = 1
 
 
 def balanced_buckets(sizes: np.ndarray, n_buckets: int) -> tuple[np.ndarray, np.ndarray]:
@@ -281,8 +156,12 @@ def detect_section(
     iterations = np.zeros(m, dtype=np.int64)
     capped = np.zeros(m, dtype=np.bool_)
     if m:
+        import numba
+
+        from algorithms.section_fits import fit_all_sections
+
         bucket_offsets, bucket_sections = balanced_buckets(sizes, numba.get_num_threads())
-        _all_sections(
+        fit_all_sections(
             xyz_sorted, offsets, bucket_offsets, bucket_sections, var, crit_table, min_points,
             int(max_iterations), FIT_MAX_ITER, FIT_TOL, bool(accelerate), score_sorted,
             critical_sorted,
@@ -298,10 +177,10 @@ def detect_section(
     tested = ~np.isnan(score)
     reasons = untested_reasons()
     for code, name in UNTESTED_REASONS.items():
-        stopped = outcome == _STOPPED + code
+        stopped = outcome == STOPPED + code
         reasons[name] += int(np.count_nonzero(~tested[order][np.repeat(stopped, sizes)]))
     # T_i distrusted in a converged fit (cancellation in q_vv): degenerate geometry too.
-    in_tested_section = np.repeat(outcome == _TESTED, sizes)
+    in_tested_section = np.repeat(outcome == TESTED, sizes)
     reasons["degenerate_geometry"] += int(np.count_nonzero(~tested[order][in_tested_section]))
     median_n = int(np.median(sizes)) if m else 0
     crit_median = float(t_critical_value(alpha, median_n - DOF_LOSS)) if median_n > 9 else None
@@ -335,5 +214,5 @@ def _sections_by_reason(outcome: np.ndarray) -> dict[str, int]:
     stopped it (the names of :func:`algorithms.patch.untested_reasons`)."""
     out = untested_reasons()
     for code, name in UNTESTED_REASONS.items():
-        out[name] += int(np.count_nonzero(outcome == _STOPPED + code))
+        out[name] += int(np.count_nonzero(outcome == STOPPED + code))
     return out

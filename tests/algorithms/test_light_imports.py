@@ -15,14 +15,10 @@ import pytest
 
 from lidar_outliers.detectors import DETECTORS
 
-#: Algorithm modules that import their numba kernels when imported (the quadric adjustment of
-#: eqs. 18-31 and its callers); every other registered detector's module must stay light.
-HEAVY_BY_DESIGN = {"algorithms.patch", "algorithms.section"}
-
 #: The module declaring each registered detector's parameters, so a new detector is checked
 #: by being declared.
 LIGHT_MODULES = sorted(
-    {d.parameters.__module__ for d in DETECTORS.values()} - HEAVY_BY_DESIGN
+    {d.parameters.__module__ for d in DETECTORS.values()}
     | {"algorithms.platform_evidence"})  # imported by the profile choice of every command
 
 #: Modules that none of them may import.
@@ -31,7 +27,21 @@ HEAVY_MODULES = ["numba", "scipy.spatial", "scipy.sparse", "scipy.stats"]
 
 @pytest.mark.parametrize("module", LIGHT_MODULES)
 def test_detector_module_imports_neither_numba_nor_scipy_spatial(module):
-    # A fresh interpreter: the test session itself has imported numba and scipy long ago.
+    heavy = heavy_imports_of(module)
+    assert heavy == [], f"importing {module} imports {heavy}"
+
+
+@pytest.mark.parametrize("module", ["lidar_outliers.detectors", "lidar_outliers.cli"])
+def test_the_registry_and_the_command_line_import_neither(module):
+    # Every command reads every detector's parameters when it starts: a command that runs only
+    # the temporal detector must not pay for numba and scipy's k-d tree (about 0.35 s).
+    heavy = heavy_imports_of(module)
+    assert heavy == [], f"importing {module} imports {heavy}"
+
+
+def heavy_imports_of(module: str) -> list[str]:
+    """The HEAVY_MODULES that importing ``module`` in a fresh interpreter imports (the test
+    session itself has imported numba and scipy long ago)."""
     code = (
         "import importlib, json, sys\n"
         f"importlib.import_module({module!r})\n"
@@ -39,4 +49,4 @@ def test_detector_module_imports_neither_numba_nor_scipy_spatial(module):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
-    assert json.loads(out.stdout) == [], f"importing {module} imports {out.stdout.strip()}"
+    return json.loads(out.stdout)

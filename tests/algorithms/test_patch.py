@@ -84,7 +84,7 @@ def test_a_part_of_the_cloud_gives_the_same_bits_as_the_whole():
 def test_nearest_in_order_is_the_brute_force_order():
     from scipy.spatial import cKDTree
 
-    from algorithms.patch import nearest_in_order
+    from algorithms.neighbours import nearest_in_order
 
     g = np.stack(np.meshgrid(np.arange(12), np.arange(12)), -1).reshape(-1, 2) * 0.1
     xyz = np.column_stack([g, np.zeros(len(g))])
@@ -100,7 +100,7 @@ def test_nearest_in_order_with_copies_follows_the_points_not_the_tree():
     # lowest-index copy first, and the rows are the same from any k-d tree build.
     from scipy.spatial import cKDTree
 
-    from algorithms.patch import nearest_in_order, neighbour_tree
+    from algorithms.neighbours import nearest_in_order, neighbour_tree
 
     rng = np.random.default_rng(11)
     base = rng.random((300, 3))
@@ -210,13 +210,8 @@ def test_points_at_one_location_share_their_patch_exactly():
     # equal fitting every point's own patch.
     from scipy.spatial import cKDTree
 
-    from algorithms.patch import (
-        FIT_MAX_ITER,
-        FIT_TOL,
-        distinct_locations,
-        frame_shift,
-        nearest_in_order,
-    )
+    from algorithms.neighbours import nearest_in_order
+    from algorithms.patch import FIT_MAX_ITER, FIT_TOL, distinct_locations, frame_shift
     from algorithms.quadric import fit_quadrics
 
     rng = np.random.default_rng(7)

@@ -8,14 +8,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from algorithms.fit_outcome import CONVERGED, DOF_LOSS, can_flag, min_patch_size
 from algorithms.quadric import (
-    CONVERGED,
-    DOF_LOSS,
-    can_flag,
     fit_masked,
     fit_quadrics,
     interleaved_order,
-    min_patch_size,
     moved_frame,
     weighted_moments,
 )
