@@ -21,8 +21,8 @@ from lidar_outliers.streaming import stream_temporal, temporal_only
 from lidar_outliers.tiling import WHOLE_CLOUD_POINTS, auto_tile_size, process_tiled
 from lidar_outliers.trajectory import check_trajectory, describe_trajectory, read_trajectory
 
-#: A temporal-only pipeline streams above this many points (in memory: ~40 bytes a point).
-STREAM_MIN_POINTS = 5_000_000
+#: Files up to this many points keep their point records in memory for the writer.
+KEEP_RECORDS_POINTS = 5_000_000
 #: Share of the progress bar given to reading, detecting and writing in :func:`process_file`.
 _READ, _DETECT = 0.25, 0.75
 
@@ -51,9 +51,11 @@ def process_file(
     reading, per stage and while writing; whatever it raises propagates unchanged (the service
     cancels jobs that way) and no output file is left behind. ``stats_path`` also receives the
     statistics as JSON (written atomically). A temporal-only pipeline on a file in time order
-    per scanner runs in one streaming pass when the file holds more than
-    ``STREAM_MIN_POINTS`` points (``streaming=None``), always (``True``) or never (``False``);
-    below that size the in-memory path is faster and its memory is bounded by the threshold.
+    per scanner runs in one streaming pass when the file holds more than ``WHOLE_CLOUD_POINTS``
+    points (``streaming=None``; beyond it the other pipelines run in tiles, which a
+    temporal-only pipeline does not need: streamed, 4 M points took 2.4 s against 5.3 s in
+    tiles), always (``True``) or never (``False``); below that size the in-memory path is
+    faster and its memory is bounded by the threshold.
 
     ``tile_size`` (metres) runs the pipeline tile by tile (:mod:`lidar_outliers.tiling`: the
     same result, memory set by the tile); None tiles files of more than
@@ -88,7 +90,7 @@ def process_file(
         compress = False  # lazrs would change the waveform fields; keep the data, write LAS
     streaming_note = None
     if streaming is None:
-        streaming = facts.points > STREAM_MIN_POINTS
+        streaming = facts.points > WHOLE_CLOUD_POINTS
     if streaming and temporal_only(params) and facts.has_gps_time and facts.points > 0:
         stats, streaming_note = stream_temporal(
             in_path, out_path, params, facts, compress, progress, chunk_points
@@ -107,9 +109,9 @@ def process_file(
         if isinstance(tiled, dict):
             return finish_statistics(tiled, out_path, compress, stats_path, progress, traj_info)
         tiling_note = f"whole cloud in memory: {tiled}"
-    # Up to STREAM_MIN_POINTS the point records stay in memory for the writer (one read and,
+    # Up to KEEP_RECORDS_POINTS the point records stay in memory for the writer (one read and,
     # for LAZ, one decompression instead of two); larger files are read again.
-    records: list[Any] | None = [] if facts.points <= STREAM_MIN_POINTS else None
+    records: list[Any] | None = [] if facts.points <= KEEP_RECORDS_POINTS else None
     cloud = lasio.read_cloud(
         in_path, chunk_points=chunk_points, progress=progress, progress_span=(0.0, _READ),
         records=records,

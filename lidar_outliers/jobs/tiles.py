@@ -50,6 +50,7 @@ from lidar_outliers.jobs.store import JobStatus, Store
 from lidar_outliers.params import PipelineParams
 from lidar_outliers.pipeline import check_noise_class, jsonable, resolve_stages
 from lidar_outliers.prepass import Streamed, leading_streamed, run_streamed
+from lidar_outliers.streaming import temporal_only
 from lidar_outliers.tiling import (
     MANIFEST,
     Settler,
@@ -85,13 +86,14 @@ def split_job(
     scratch: Path, progress: Progress,
 ) -> list[Cell] | None:
     """Cut the job's input (a local copy at ``source``) into tiles in the job's storage and
-    return the cells; None when the job runs whole on this worker (small, or a stage that
-    needs the whole cloud)."""
+    return the cells; None when the job runs on this worker (small, a stage that needs the
+    whole cloud, or ``temporal`` alone, which streams over the file in bounded memory)."""
     job = store.get_job(job_id)
     assert job is not None
     params = PipelineParams.model_validate(job.inputs)
     facts = lasio.inspect_las(source)
-    if facts.points <= settings.tile_job_points or "trajectory" in job.facts:
+    if (facts.points <= settings.tile_job_points or "trajectory" in job.facts
+            or temporal_only(params)):
         return None
     if params.pipeline is not None and isinstance(
             stage_halos(params.pipeline[leading_streamed(params.pipeline):]), str):

@@ -146,6 +146,23 @@ def test_temporal_first_streams_then_tiles_give_the_one_machine_result(stack, ke
     assert not (stack.data_dir / "jobs" / job / "tiles").exists()
 
 
+def test_temporal_alone_runs_on_one_worker_without_tiles(stack, key, tmp_path):
+    # temporal alone follows the scan lines over the whole file in bounded memory: cutting
+    # tiles for it would only add work.
+    scanned = scanned_tile_scene(tmp_path / "scanned.las")
+    inputs = {"pipeline": [{"detector": "temporal", "max_gap": 0.001}]}
+    before = sum(tile_runs(stack))
+    job = submit(stack, key, scanned, inputs)
+    out, stats = finished(stack, key, job, tmp_path / "service.las")
+    assert stats["mode"] == "in memory" and "tiling" not in stats
+    assert sum(tile_runs(stack)) == before
+    local = tmp_path / "local.las"
+    process_file(scanned, local, inputs)
+    a, b = laspy.read(local), laspy.read(out)
+    assert np.array_equal(a.outlier_flags, b.outlier_flags) and np.sum(a.outlier_flags) > 0
+    assert not (stack.data_dir / "jobs" / job / "tiles").exists()
+
+
 @pytest.mark.parametrize("inputs", [
     {"pipeline": [STREET_TRANSIENT]},
     {"pipeline": [{"detector": "temporal", "max_gap": 0.001}, STREET_TRANSIENT,

@@ -317,6 +317,22 @@ def test_temporal_only_pipeline_streams_and_matches_the_in_memory_run(tmp_path, 
     assert stats["stages"][0]["confusion"]["outliers_identified"] >= 35
 
 
+def test_temporal_alone_streams_a_file_too_large_to_run_whole(tmp_path, rng, monkeypatch):
+    # Beyond WHOLE_CLOUD_POINTS other pipelines run in tiles; temporal alone streams instead.
+    import lidar_outliers.process
+
+    src = _two_scanner_file(tmp_path, rng, "ordered.las")
+    params = {"pipeline": [{"detector": "temporal", "sigma": 0.003}]}
+    whole = process_file(src, tmp_path / "whole.las", params)
+    assert whole["mode"] == "in memory"
+    monkeypatch.setattr(lidar_outliers.process, "WHOLE_CLOUD_POINTS", 5000)  # the file: 6000
+    streamed = process_file(src, tmp_path / "streamed.las", params, chunk_points=700)
+    assert streamed["mode"] == "streaming"
+    a, b = laspy.read(tmp_path / "whole.las"), laspy.read(tmp_path / "streamed.las")
+    np.testing.assert_array_equal(a.outlier_flags, b.outlier_flags)
+    assert np.sum(a.outlier_flags) > 0
+
+
 def test_unordered_file_falls_back_to_memory(tmp_path, rng):
     src = _two_scanner_file(tmp_path, rng, "shuffled.las", shuffle=True)
     stats = process_file(src, tmp_path / "out.las",
