@@ -80,6 +80,10 @@ def test_quick_bench_writes_tables_with_the_command(real_folders, tmp_path):
     cut = numbers["airborne"]["cut"]
     assert cut["profile"] == "airborne" and cut["gross_found"] <= cut["gross"]
     assert len(cut["missed_gross_gaps_m"]) == cut["gross"] - cut["gross_found"]
+    assert "`patch`: " in text and "target >= 50,000 points/s" in text
+    command = text.split("## The temporal command against laspy I/O")[1]
+    assert "| A_100.las | " in command and "Largest ratio " in command
+    assert len(numbers["command"]["ratios"]) == 1 and numbers["command"]["ratios"][0] > 0
     speed = numbers["speed"]["temporal"]
     assert speed["points"] > 0 and speed["peak_rss_mb"] >= speed["rss_before_mb"] > 0
     assert speed["run_peak_rss_mb"] >= speed["rss_before_mb"]
