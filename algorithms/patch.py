@@ -149,7 +149,9 @@ def detect_patch(
     DetectorResult
         score (n,) = T_i of eq. 31 of each point in its own patch, NaN where untested;
         flagged = score > t(k - 9). ``info["points_untested"]`` counts the untested points by
-        reason (:func:`untested_reasons`).
+        reason (:func:`untested_reasons`); ``info["points_tested_a_priori"]`` the points whose
+        patch the quadric holds exactly, tested with the a-priori variance factor
+        (:func:`algorithms.quadric.t_statistic`: their score is near 0).
     """
     p = PatchParameters(k=k, sigma=sigma, alpha=alpha)
     pts = check_xyz(xyz)
@@ -165,6 +167,7 @@ def detect_patch(
         "alpha": float(alpha),
         "critical_value": crit,
         "points_tested": 0,
+        "points_tested_a_priori": 0,
         "points_untested": reasons,
         "mean_iterations": None,
         "fit_max_iterations": FIT_MAX_ITER,
@@ -176,7 +179,7 @@ def detect_patch(
         return DetectorResult(score, np.zeros(n, dtype=bool), crit, info)
 
     from algorithms.neighbours import nearest_in_order, neighbour_tree
-    from algorithms.quadric import fit_quadrics
+    from algorithms.quadric import EXACT_FIT_SIGMA0, fit_quadrics
 
     local = pts - frame_shift(pts)  # the same numbers for any subset of the same cloud
     tree = neighbour_tree(local)
@@ -184,6 +187,7 @@ def detect_patch(
     copies = np.bincount(location)  # points at each distinct location
     location_score = np.full(first.size, np.nan)
     location_status = np.empty(first.size, dtype=np.int64)
+    location_exact = np.zeros(first.size, dtype=bool)  # a fit through every point
     iterations_sum = 0
     batch_points = max(1, min(int(batch_points), BATCH_NEIGHBOURS // k))
     for batch in spatial_batches(local[first, :2], batch_points, tile_size):
@@ -194,12 +198,14 @@ def detect_patch(
         )
         location_score[batch] = np.where(fit.converged, fit.t_stat[:, 0], np.nan)
         location_status[batch] = fit.status
+        location_exact[batch] = fit.converged & (fit.sigma0 <= EXACT_FIT_SIGMA0)
         iterations_sum += int((copies[batch] * fit.iterations).sum())  # per point, not location
         del nbr, fit
     score = location_score[location]
     tested = ~np.isnan(score)
     count_untested(reasons, location_status[location], tested)
     info["points_tested"] = int(tested.sum())
+    info["points_tested_a_priori"] = int(np.count_nonzero(location_exact[location] & tested))
     info["mean_iterations"] = iterations_sum / n
     flagged = np.zeros(n, dtype=bool)
     flagged[tested] = score[tested] > crit
@@ -209,10 +215,8 @@ def detect_patch(
 def untested_reasons() -> dict[str, int]:
     """Untested points by reason, all zero: ``did_not_converge`` (the iteration of eqs. 20-29 did
     not reach the tolerance in ``FIT_MAX_ITER`` adjustments), ``degenerate_geometry`` (nearly
-    collinear points, singular normal equations, a T_i beyond the bound sqrt(n - 9) that
-    cancellation in q_vv produced, or a fit through every point:
-    :data:`algorithms.quadric.EXACT_FIT_SIGMA0`) and ``too_few_points`` (fewer points than the
-    fit needs)."""
+    collinear points, singular normal equations, or a T_i beyond the bound sqrt(n - 9) that
+    cancellation in q_vv produced) and ``too_few_points`` (fewer points than the fit needs)."""
     return {"did_not_converge": 0, "degenerate_geometry": 0, "too_few_points": 0}
 
 

@@ -77,8 +77,9 @@ _T_BOUND_SLACK = 1e-6
 #: sigma_0 (the a-posteriori standard deviation of unit weight, eq. 30's weights) at or below
 #: which a fit holds its points exactly: a quadric through every point to within a millionth
 #: of their stated noise (points on two coordinate-rounding levels 1 mm apart make a pair of
-#: planes, which eq. 18 includes, with sigma_0 ~ 1e-18). Its T_i is rounding noise divided by
-#: rounding noise, so the points are left untested.
+#: planes, which eq. 18 includes, with sigma_0 ~ 1e-18; a vehicle standing still gives such
+#: patches by the thousand). Eq. 31 would divide rounding noise by rounding noise; such a fit
+#: tests its points with the a-priori variance factor instead (:func:`t_statistic`).
 EXACT_FIT_SIGMA0 = 1e-6
 
 
@@ -160,16 +161,21 @@ def equivalent_variance(
 def t_statistic(v: float, sigma0: float, q_vv: float, redundancy: int) -> float:
     """T_i of eq. 31: |v_i| / (sigma_0 sqrt(q_vv_i)); NaN when it cannot be trusted.
 
-    In exact arithmetic T_i <= sqrt(redundancy) (v_i^2 / q_vv_i can never exceed v^T P v). A
-    larger value, or q_vv not positive, means q_vv = 1/p_i - B_i Q_aa B_i^T was lost to
-    cancellation (a nearly degenerate patch), and a sigma_0 at or below EXACT_FIT_SIGMA0 means
-    the quadric passes through every point: either way the point is left untested instead of
-    flagged.
+    A fit through every point (sigma_0 at or below EXACT_FIT_SIGMA0) normalises the residual
+    with the a-priori variance factor 1 instead of sigma_0 (Baarda's w_i = |v_i| / sqrt(q_vv_i),
+    the weights of eq. 30 from the declared sigma): it is as small as the points' agreement, so
+    the point is tested and passes, where eq. 31 would be rounding noise over rounding noise.
+
+    In exact arithmetic v_i^2 / q_vv_i never exceeds v^T P v = sigma_0^2 redundancy, so T_i <=
+    sqrt(redundancy) and w_i <= sigma_0 sqrt(redundancy). A larger value, or q_vv not positive,
+    means q_vv = 1/p_i - B_i Q_aa B_i^T was lost to cancellation (a nearly degenerate patch):
+    the point is left untested instead of flagged.
     """
-    if q_vv <= 0.0 or not sigma0 > EXACT_FIT_SIGMA0:
+    if q_vv <= 0.0 or not sigma0 >= 0.0:
         return math.nan
-    t = abs(v) / (sigma0 * math.sqrt(q_vv))
-    if t > math.sqrt(redundancy) * (1.0 + _T_BOUND_SLACK):
+    exact = not sigma0 > EXACT_FIT_SIGMA0
+    t = abs(v) / ((1.0 if exact else sigma0) * math.sqrt(q_vv))
+    if t > math.sqrt(redundancy) * (EXACT_FIT_SIGMA0 if exact else 1.0) * (1.0 + _T_BOUND_SLACK):
         return math.nan
     return t
 

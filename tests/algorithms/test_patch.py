@@ -276,16 +276,27 @@ def test_too_few_points_and_collinear_patches_are_counted_as_untested():
     assert res.info["points_tested"] == 0
 
 
-def test_points_on_two_rounding_levels_are_untested_not_flagged():
+def test_points_on_two_rounding_levels_are_tested_a_priori_and_pass():
     """A flat road recorded at 1 mm: every point lies on z = 0 or z = 1 mm. A pair of planes (a
-    quadric) holds all of them, sigma_0 vanishes and T_i is rounding noise: untested."""
+    quadric) holds all of them and sigma_0 vanishes: eq. 31 would be rounding noise over
+    rounding noise, so the residuals are normalised with the a-priori variance factor (Baarda's
+    w), which is near 0: every point is tested and none is flagged. A point 5 cm up breaks the
+    exact fit of its neighbours' patches and is flagged by eq. 31 as usual."""
     rng = np.random.default_rng(21)
     xy = np.round(rng.uniform(0.0, 1.5, (800, 2)), 3)
     z = np.where(rng.random(800) < 0.5, 0.0, 0.001)  # the LAS millimetre
     res = detect_patch(np.c_[xy, z], k=40, sigma=0.005, alpha=0.001)
     assert not res.flagged.any()
-    assert res.info["points_untested"]["degenerate_geometry"] == 800
-    # the same road with its true noise is tested
+    assert res.info["points_tested"] == res.info["points_tested_a_priori"] == 800
+    assert sum(res.info["points_untested"].values()) == 0
+    assert np.nanmax(res.score) < 1e-3
+    spiked = z.copy()
+    spiked[100] = 0.05
+    res = detect_patch(np.c_[xy, spiked], k=40, sigma=0.005, alpha=0.001)
+    assert res.flagged[100] and res.flagged.sum() == 1
+    assert res.info["points_tested_a_priori"] < 800
+    # the same road with its true noise is tested by eq. 31
     noisy = detect_patch(np.c_[xy, rng.normal(0.0, 0.003, 800)], k=40, sigma=0.005, alpha=0.001)
     assert noisy.info["points_untested"]["degenerate_geometry"] == 0
+    assert noisy.info["points_tested_a_priori"] == 0
     assert noisy.info["points_tested"] >= 0.99 * 800
