@@ -6,7 +6,10 @@ lower-left corner of the cloud's bounding box, or at a given ``anchor``). One qu
 two-sided critical value of t(n - 9), n the points still in the section, are removed together and
 the surface is fitted again from a fresh algebraic start, until a fit removes nothing or
 ``max_iterations`` fits were made. A refit whose algebraic start does not converge starts again
-from the surface of the fit before it (moved to the new centroid): the surface it refines.
+from the surface of the fit before it (moved to the new centroid): the surface it refines; a
+first fit whose algebraic start does not converge (a section of road, wall and car the quadric
+cannot hold, where the iteration wanders between surfaces) starts again from the plane that
+fits the points best, as a quadric (the road, in a street).
 
 Scores: a removed point keeps the T_i of the fit that removed it; a kept point gets its T_i in the
 last fit. A section that has fewer than the points needed for eq. 31 to flag anything at ``alpha``
@@ -155,6 +158,7 @@ def detect_section(
     fits = np.zeros(m, dtype=np.int64)
     iterations = np.zeros(m, dtype=np.int64)
     capped = np.zeros(m, dtype=np.bool_)
+    from_plane = np.zeros(m, dtype=np.bool_)
     if m:
         import numba
 
@@ -165,7 +169,7 @@ def detect_section(
             xyz_sorted, offsets, bucket_offsets, bucket_sections, var, crit_table, min_points,
             int(max_iterations), FIT_MAX_ITER, FIT_TOL, bool(accelerate), score_sorted,
             critical_sorted,
-            flagged_sorted, outcome, fits, iterations, capped,
+            flagged_sorted, outcome, fits, iterations, capped, from_plane,
         )  # fmt: skip
     score = np.empty(n)
     score[order] = score_sorted
@@ -202,6 +206,7 @@ def detect_section(
         "max_fits_per_section": int(fits.max()) if m else 0,
         "mean_fits_per_section": n_fits / m if m else None,
         "sections_stopped_at_max_iterations": int(np.count_nonzero(capped)),
+        "sections_started_from_plane": int(np.count_nonzero(from_plane)),
         "mean_iterations": float(iterations.sum()) / n_fits if n_fits else None,
         "fit_max_iterations": FIT_MAX_ITER,
         "fit_tolerance": FIT_TOL,

@@ -209,3 +209,34 @@ def test_balanced_buckets_share_every_section_once_by_size():
     assert one[0].tolist() == [0, 8]
     many = balanced_buckets(sizes[:3], 8)  # more threads than sections: one bucket per section
     assert many[0].tolist() == [0, 1, 2, 3]
+
+
+def test_a_first_fit_that_wanders_starts_again_from_the_best_plane():
+    """A real street section (road, walls, a vehicle) whose algebraic start does not converge
+    within the detector's adjustments: the first fit starts again from the best plane, and
+    every point is tested."""
+    from pathlib import Path
+
+    data = Path(__file__).resolve().parents[1] / "data" / "sections" / "street_section.npz"
+    xyz = np.load(data)["xyz_mm"] * 0.001
+    res = detect_section(xyz, section_size=100.0)  # one section
+    assert res.info["sections"] == 1
+    assert res.info["sections_started_from_plane"] == 1
+    assert sum(res.info["points_untested"].values()) == 0
+    assert 0 < res.flagged.sum() < 0.05 * len(xyz)
+
+
+def test_the_best_plane_is_the_quadric_across_the_least_spread():
+    from algorithms.section_fits import _plane
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-2, 2, (500, 2))
+    xyz = np.c_[xy, 0.5 * xy[:, 0] - 0.2 * xy[:, 1] + 10.0]
+    active = rng.random(500) < 0.9
+    params, centroid = np.empty(10), np.empty(3)
+    _plane(xyz, active, params, centroid)
+    np.testing.assert_allclose(centroid, xyz[active].mean(axis=0))
+    normal = np.array([0.5, -0.2, -1.0]) / np.linalg.norm([0.5, -0.2, -1.0])
+    assert abs(abs(params[6:9] @ normal) - 1.0) < 1e-12
+    assert np.all(params[:6] == 0.0) and params[9] == 0.0
+    np.testing.assert_allclose((xyz - centroid) @ params[6:9], 0.0, atol=1e-12)
