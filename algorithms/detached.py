@@ -199,22 +199,23 @@ def nearest_first(tree: Any, queries: np.ndarray, k: int,
 
     One neighbour past the k-th tells which queries have a tie across the k-th distance; only
     those are asked for the slack (in dense clouds most have none)."""
+    from algorithms.neighbours import by_distance_then_index
+
     m = len(queries)
     kk = min(k + 1, tree.n)
     dist, idx = tree.query(queries, k=kk, workers=workers)
-    dist, idx = dist.reshape(m, kk), idx.reshape(m, kk)
+    dist, idx = dist.reshape(m, kk), idx.reshape(m, kk).astype(np.int64)
     if kk > k:
         tied = np.flatnonzero(dist[:, k] == dist[:, k - 1])
-        dist, idx = dist[:, :k].copy(), idx[:, :k].copy()
+        dist, idx = np.ascontiguousarray(dist[:, :k]), np.ascontiguousarray(idx[:, :k])
         if tied.size:
             wide = min(k + TIE_SLACK, tree.n)
             d, i = tree.query(queries[tied], k=wide, workers=workers)
-            d, i = d.reshape(tied.size, wide), i.reshape(tied.size, wide)
-            pick = np.lexsort((i, d), axis=-1)[:, :k]
-            dist[tied] = np.take_along_axis(d, pick, axis=1)
-            idx[tied] = np.take_along_axis(i, pick, axis=1)
-    order = np.lexsort((idx, dist), axis=-1)
-    return np.take_along_axis(dist, order, axis=1), np.take_along_axis(idx, order, axis=1)
+            d, i = d.reshape(tied.size, wide), i.reshape(tied.size, wide).astype(np.int64)
+            by_distance_then_index(d, i)
+            dist[tied], idx[tied] = d[:, :k], i[:, :k]
+    by_distance_then_index(dist, idx)
+    return dist, idx
 
 
 def _plane_residuals(

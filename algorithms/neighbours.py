@@ -79,3 +79,19 @@ def _ties_by_index(tree: cKDTree, xyz: np.ndarray, points: np.ndarray, radius: n
     flat = flat[np.lexsort((flat, d2, row))]  # by row, then distance, then index
     first = np.cumsum(sizes) - sizes
     return flat[first[:, None] + np.arange(k)]
+
+
+@njit(cache=True, parallel=True)
+def by_distance_then_index(dist: np.ndarray, idx: np.ndarray) -> None:
+    """Sort each row of ``dist`` and ``idx`` (m, k) in place by distance, equal distances by
+    index. Rows come from a k-d tree in distance order already, with ties in the tree's own
+    order, so insertion sort moves only the tied entries."""
+    for r in prange(dist.shape[0]):
+        d, i = dist[r], idx[r]
+        for a in range(1, d.size):
+            dv, iv = d[a], i[a]
+            b = a - 1
+            while b >= 0 and (d[b] > dv or (d[b] == dv and i[b] > iv)):
+                d[b + 1], i[b + 1] = d[b], i[b]
+                b -= 1
+            d[b + 1], i[b + 1] = dv, iv

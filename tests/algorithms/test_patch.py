@@ -300,3 +300,17 @@ def test_points_on_two_rounding_levels_are_tested_a_priori_and_pass():
     assert noisy.info["points_untested"]["degenerate_geometry"] == 0
     assert noisy.info["points_tested_a_priori"] == 0
     assert noisy.info["points_tested"] >= 0.99 * 800
+
+
+def test_rows_by_distance_then_index_equal_lexsort():
+    from algorithms.neighbours import by_distance_then_index
+
+    rng = np.random.default_rng(8)
+    dist = np.round(rng.random((500, 17)), 1)  # many ties
+    idx = rng.permutation(500 * 17).reshape(500, 17).astype(np.int64)
+    dist = np.sort(dist, axis=1)  # as a k-d tree returns them: by distance, ties in any order
+    order = np.lexsort((idx, dist), axis=-1)
+    want_d, want_i = np.take_along_axis(dist, order, 1), np.take_along_axis(idx, order, 1)
+    by_distance_then_index(dist, idx)
+    np.testing.assert_array_equal(dist, want_d)
+    np.testing.assert_array_equal(idx, want_i)
