@@ -302,13 +302,17 @@ def load_region(tiles: TileSet, cell: tuple[int, int], halo: float) -> tuple[np.
 
 def outside_distance(xy: np.ndarray, tiles: TileSet, cell: tuple[int, int]) -> np.ndarray:
     """(n,) Chebyshev XY distance from each point to the square of ``cell``, negative inside
-    (minus the distance to its nearest edge)."""
-    lo = tiles.anchor + np.asarray(cell, dtype=np.float64) * tiles.tile_size
-    hi = lo + tiles.tile_size
-    x, y = xy[:, 0], xy[:, 1]  # one axis at a time: columns of a record array are strided
-    # per axis: > 0 outside, -(distance to an edge) inside; outside: the largest positive
-    # part, inside: minus the nearest edge's distance
-    return np.maximum(np.maximum(lo[0] - x, x - hi[0]), np.maximum(lo[1] - y, y - hi[1]))
+    (minus the distance to its nearest edge).
+
+    Measured in tile units from the same quotient as :func:`cells_of`, so a point that
+    ``cells_of`` puts in the cell is never outside it: on an edge, ``anchor + cell x size``
+    may round the other way (large coordinates), and a halo of 0 would lose the point."""
+    size = tiles.tile_size
+    # one axis at a time (columns of a record array are strided); per axis the position in
+    # the cell, [0, 1) inside: > 0 outside, -(distance to an edge) inside
+    u = (xy[:, 0] - tiles.anchor[0]) / size - cell[0]
+    v = (xy[:, 1] - tiles.anchor[1]) / size - cell[1]
+    return size * np.maximum(np.maximum(-u, u - 1.0), np.maximum(-v, v - 1.0))
 
 
 def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = None) -> Cloud:

@@ -387,3 +387,46 @@ def test_outside_distance_is_signed_chebyshev_distance_to_the_cell() -> None:
     expected = np.where(inside, -to_edge, beyond)
     np.testing.assert_allclose(outside_distance(xy, Grid, (1, 1)), expected)
     assert inside.any() and (~inside).any()
+
+
+def test_points_on_tile_edges_belong_to_their_cell_at_any_coordinates() -> None:
+    """A point that cells_of puts in a cell is never outside it, also where anchor + cell x
+    size rounds the other way (a millimetre grid 1,000 km from the origin)."""
+    from lidar_outliers.tiling import cells_of
+
+    class Grid:
+        anchor = np.array([-14.991, -14.995])
+        tile_size = 2.0
+
+    xy = np.array([[-4.991, -10.792], [-0.991, 7.868], [3.009, -6.219]])  # on x edges
+    for offset in (0.0, 1e6, 4e7):
+        shifted = xy + offset
+        grid = type("Shifted", (), {"anchor": Grid.anchor + offset, "tile_size": 2.0})
+        cell = cells_of(shifted, grid.anchor, grid.tile_size)
+        for point, c in zip(shifted, cell, strict=True):
+            assert outside_distance(point[None], grid, tuple(c))[0] <= 0.0
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e6])
+def test_tiled_transient_keeps_points_on_tile_edges_far_from_the_origin(tmp_path, offset):
+    """Millimetre coordinates, some exactly on tile edges: every point has a tile result and
+    the tiled run equals the whole one."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    xyz = np.c_[rng.uniform(0, 30, n), rng.uniform(0, 30, n), rng.normal(0, 0.01, n)]
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales = np.array([0.001] * 3)
+    header.offsets = np.array([offset, offset, 0.0])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = (xyz + [offset, offset, 100.0]).T
+    las.gps_time = np.arange(n) * 1e-5 + 1000.0
+    las.point_source_id = np.ones(n, np.uint16)
+    src = tmp_path / "edges.las"
+    las.write(src)
+    pipeline = {"pipeline": [{"detector": "transient"}]}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    process_file(src, whole, pipeline)
+    stats = process_file(src, tiled, pipeline, tile_size=2.0)
+    assert stats["mode"] == "tiled"
+    _assert_same(_results(whole), _results(tiled), ["transient"])
+
