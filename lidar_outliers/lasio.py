@@ -601,6 +601,7 @@ def _output_header(
             v for v in header.evlrs if v.user_id.strip("\0").strip() not in _DROPPED_VLR_USERS
         )
     _register_unregistered_bytes(header)
+    _rename_clashing_dimensions(header, new_dims)
     existing = set(header.point_format.extra_dimension_names)
     params = [
         laspy.ExtraBytesParams(name=n, type=t, description=d)
@@ -610,6 +611,34 @@ def _output_header(
     if params:
         header.add_extra_dims(params)
     return header
+
+
+#: Appended to the name of an input dimension that a result dimension of another type needs.
+CLASHING_SUFFIX = "_input"
+
+
+def _rename_clashing_dimensions(header: laspy.LasHeader, new_dims: list[tuple[str, type, str]]
+                                ) -> dict[str, str]:
+    """Rename the input's extra dimensions that carry a result dimension's name but not its type
+    (a ``detached_score`` of uint8 would cut scores to integers and NaN to 0): their bytes stay,
+    under ``<name>_input``; a dimension of the same type (an earlier result) is overwritten in
+    place. Returns {old name: new name}."""
+    wanted = {name: np.dtype(kind) for name, kind, _ in new_dims}
+    dimensions = header.point_format.dimensions
+    taken = {d.name for d in dimensions}
+    renamed = {}
+    for i, dim in enumerate(dimensions):
+        if dim.is_standard or dim.name not in wanted or (
+                dim.num_elements == 1 and dim.scales is None and dim.offsets is None
+                and dim.dtype == wanted[dim.name]):
+            continue
+        new = f"{dim.name}{CLASHING_SUFFIX}"
+        while new in taken:
+            new += "_"
+        dimensions[i] = dim._replace(name=new)
+        taken.add(new)
+        renamed[dim.name] = new
+    return renamed
 
 
 def _register_unregistered_bytes(header: laspy.LasHeader) -> None:

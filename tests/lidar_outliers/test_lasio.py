@@ -72,20 +72,28 @@ def test_round_trip_keeps_every_dimension_vlr_evlr_and_crs(tmp_path, rng, point_
 
 
 def test_existing_extra_bytes_kept_and_our_dimensions_replaced(tmp_path, rng):
+    # an earlier result's dimension (same name and type) is overwritten in place; one of
+    # another type (scores cut to uint8, NaN to 0) keeps its bytes under <name>_input
     n = 300
     xyz, t, _ = scan_line_cloud(n, rng)
-    extra = {"outlier_flags": np.full(n, 9, np.uint8), "height": rng.normal(size=n)}
+    extra = {"outlier_flags": np.full(n, 9, np.uint8), "height": rng.normal(size=n),
+             "temporal_score": np.full(n, 7.0, np.float32)}
     src = write_las(tmp_path / "in.las", xyz, gps_time=t, extra=extra)
     out = tmp_path / "out.las"
-    flags = np.zeros(n, np.uint8)
-    flags[5] = 1
-    lasio.write_result(src, out, flags=flags, scores={"temporal": np.zeros(n)})
+    flags = np.zeros(n, np.uint16)
+    flags[5] = 1 << 9
+    scores = np.full(n, np.nan)
+    scores[3] = 2.5
+    lasio.write_result(src, out, flags=flags, scores={"temporal": scores})
     after = laspy.read(out)
     assert list(after.point_format.extra_dimension_names) == [
-        "outlier_flags", "height", "temporal_score"
+        "outlier_flags_input", "height", "temporal_score", "outlier_flags"
     ]
+    assert after["outlier_flags"].dtype == np.uint16
     np.testing.assert_array_equal(after["outlier_flags"], flags)
+    np.testing.assert_array_equal(after["outlier_flags_input"], extra["outlier_flags"])
     np.testing.assert_array_equal(after["height"], extra["height"])
+    np.testing.assert_array_equal(after["temporal_score"], scores.astype(np.float32))
 
 
 def test_classification_written_only_when_given(tmp_path, rng):
