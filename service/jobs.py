@@ -366,6 +366,11 @@ class JobService:
         laz = job.laz if laz is None else laz
         if keep == "all" and laz == job.laz:
             return key, info, laz
+        try:
+            lasio.check_laz_output(job.facts.get("name", "the result"),
+                                   int(job.facts.get("point_format", -1)), laz)
+        except LidarOutliersError as exc:
+            raise Problem(422, "unsupported-output", str(exc)) from None
 
         def make(result: Path, out: Path) -> None:
             if keep == "all":

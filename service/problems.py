@@ -55,6 +55,8 @@ PROBLEMS: dict[str, tuple[str, str]] = {
     "tus-version": ("tus version not supported", "Send `Tus-Resumable: 1.0.0`."),
     "wrong-content-type": ("Wrong content type", "PATCH bodies are "
                            "`Content-Type: application/offset+octet-stream`."),
+    "unsupported-output": ("Output format not possible", "Ask for the result in another "
+                           "format (format=las)."),
     "internal-error": ("Internal error", "Report it with the time of the request."),
 }
 OGC_SLUGS = {"no-such-process", "no-such-job", "result-not-ready"}

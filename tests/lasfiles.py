@@ -162,7 +162,8 @@ def write_cloud(
     z[idx] += 2.0
     has_time = "gps_time" in laspy.PointFormat(point_format).dimension_names
     write_las(path, np.column_stack([x, y, z]), gps_time=t if has_time else None,
-              point_format=point_format, version="1.2", offsets=(500_000.0, 5_000_000.0, 0.0),
+              point_format=point_format, version="1.2" if point_format < 6 else "1.4",
+              offsets=(500_000.0, 5_000_000.0, 0.0),
               point_source_id=np.ones(n, dtype=np.uint16),
               classification=np.ones(n, dtype=np.uint8),
               intensity=rng.integers(0, 1000, n).astype(np.uint16), vlrs=(), laz=laz)

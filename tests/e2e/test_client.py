@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import re
@@ -166,6 +167,28 @@ def test_cli_failed_job_exits_with_its_message(stack: Stack, key: str, tmp_path:
     assert len(lines) == 1 and lines[0].startswith("lidar-outliers: error: Job failed: job ")
     assert "gps_time" in lines[0]
     assert not (tmp_path / "out.las").exists()
+
+
+def test_laz_of_a_waveform_result_is_a_422_problem(stack: Stack, key: str,
+                                                   tmp_path: Path) -> None:
+    # lazrs would change the waveform fields of point format 10: the LAS result is served, a
+    # LAZ one is refused with a problem that says why, and the connection stays usable
+    wave = tmp_path / "wave.las"
+    write_cloud(wave, n=500, point_format=10)
+    with Client(stack.url, key) as api, stack.client(key) as http:
+        job = api.submit(wave, inputs={"pipeline": [{"detector": "temporal", "sigma": 0.01}]})
+        job = job["jobID"]
+        assert api.wait(job)["status"] == "successful"
+        url = f"/jobs/{job}/results/cloud"
+        for params in ({"format": "laz"}, {"format": "laz", "keep": "inliers"}):
+            answer = http.get(url, params=params)
+            assert answer.status_code == 422, answer.text
+            assert answer.headers["content-type"] == "application/problem+json"
+            assert answer.json()["type"].endswith("/unsupported-output")
+            assert "point format 10" in answer.json()["detail"]
+        served = http.get(url, params={"keep": "inliers"})
+        assert served.status_code == 200
+        assert laspy.read(io.BytesIO(served.content)).header.point_format.id == 10
 
 
 def test_cli_wrong_key_gives_the_401_problem(stack: Stack, las_file, tmp_path: Path) -> None:
