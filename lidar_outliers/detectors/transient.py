@@ -20,7 +20,7 @@ from algorithms.result import DetectorResult
 from algorithms.transient import ScanLineSide, TransientParameters
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors.base import Detector, Prepass
-from lidar_outliers.errors import ParameterError
+from lidar_outliers.errors import LidarOutliersError, ParameterError
 from lidar_outliers.pages import filled, gathered, release, scattered
 
 #: Points per step of the passes over the whole file.
@@ -44,6 +44,9 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
     known = None if cloud.known is None else cloud.known.get("transient")
     if known is not None and cloud.trajectory is None:
         return _run_given(cloud, known, params)
+    timed = np.isfinite(gps_time)
+    if not timed.all():
+        return _without_untimed(cloud, timed, params)
     # cloud.xyz is in the file's local frame: a tiled run computes on the same numbers
     result = detect_transient(
         cloud.xyz, gps_time, cloud.point_source_id, k=params.k, radius=params.radius,
@@ -66,6 +69,20 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
                           info=info)
 
 
+def _without_untimed(cloud: Cloud, timed: np.ndarray, params: TransientParameters
+                     ) -> DetectorResult:
+    """The points whose gps_time is NaN or infinite cannot be placed on a scan line or in an
+    epoch: they are left untested (score NaN) and the others run without them."""
+    inner = run(cloud.subset(np.flatnonzero(timed)), params)
+    score = np.full(len(cloud), np.nan)
+    score[timed] = inner.score
+    flagged = np.zeros(len(cloud), dtype=bool)
+    flagged[timed] = inner.flagged
+    info = {**inner.info, "points_without_time": int(np.count_nonzero(~timed))}
+    return DetectorResult(score=score, flagged=flagged, critical_value=inner.critical_value,
+                          info=info)
+
+
 def _run_given(cloud: Cloud, known: np.ndarray, params: TransientParameters) -> DetectorResult:
     """A tile's run: each point's score from the pass over the whole file."""
     score = np.asarray(known["score"], dtype=np.float64)
@@ -84,8 +101,12 @@ def persistent_values(cloud: Cloud, params: TransientParameters) -> dict[str, np
     from algorithms.transient import point_facts
 
     gps_time = cloud.require_gps_time("transient")
-    if not (np.all(np.isfinite(cloud.xyz)) and np.all(np.isfinite(gps_time))):
-        raise ParameterError("xyz or gps_time holds NaN or infinite values")
+    if not np.all(np.isfinite(gps_time)):
+        raise LidarOutliersError(
+            f"transient: {int(np.count_nonzero(~np.isfinite(gps_time)))} points of this tile "
+            "have a gps_time that is NaN or infinite, which a run in tiles cannot place on the "
+            "file's scan lines (a file run whole leaves them untested); give those points a "
+            "time or remove them")
     return point_facts(cloud.xyz, gps_time, k=params.k, radius=params.radius,
                        min_dt=params.min_dt)
 

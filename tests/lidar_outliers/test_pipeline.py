@@ -341,3 +341,29 @@ def test_unordered_file_falls_back_to_memory(tmp_path, rng):
     assert stats["mode"] == "in memory" and "not in time order" in stats["streaming"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.las", "shuffled.las"]
     assert np.asarray(laspy.read(tmp_path / "out.las").outlier_flags).sum() > 0
+
+
+def test_transient_leaves_points_without_a_time_untested(tmp_path):
+    # a NaN or infinite gps_time cannot be placed on a scan line: those points are untested
+    # and the others get what they get without them
+    from tests.lasfiles import STREET_TRANSIENT, street_scene
+
+    cloud = lasio.read_cloud(street_scene(tmp_path / "street.las"))
+    params = PipelineParams.model_validate({"pipeline": [STREET_TRANSIENT]})
+    gps_time = cloud.gps_time.copy()
+    bad = np.array([5, 700, 1500])
+    gps_time[bad] = [np.nan, np.inf, -np.inf]
+    broken = Cloud(xyz=cloud.xyz, origin=cloud.origin, gps_time=gps_time,
+                   point_source_id=cloud.point_source_id, classification=cloud.classification,
+                   intensity=cloud.intensity)
+    result = run_pipeline(broken, params)
+    keep = np.setdiff1d(np.arange(len(cloud)), bad)
+    alone = run_pipeline(cloud.subset(keep), params)
+    score = result.scores["transient"]
+    assert np.isnan(score[bad]).all() and not result.flags[bad].any()
+    np.testing.assert_array_equal(score[keep], alone.scores["transient"])
+    np.testing.assert_array_equal(result.flags[keep], alone.flags)
+    assert result.flags.any()
+    stage = result.statistics["stages"][0]
+    assert stage["info"]["points_without_time"] == 3
+    assert stage["points_tested"] == len(cloud) - 3
