@@ -263,6 +263,7 @@ def detect_height_field(
     origin: np.ndarray | None = None,
     wanted: np.ndarray | None = None,
     sample: np.ndarray | None = None,
+    sigma_floor: float = 0.0,
 ) -> DetectorResult:
     """Edge-aware leave-one-out height-field outlier test (see the module docstring).
 
@@ -285,6 +286,9 @@ def detect_height_field(
         patches of the others are not fitted (NaN), and ``sigma="auto"`` comes from these.
     sample : (n,) bool, the points whose full-patch residuals ``sigma="auto"`` is estimated
         from (default all; :func:`sigma_sample` draws them from a file).
+    sigma_floor : metres, the least sigma used, estimated or given (the coordinates' rounding:
+        below it a noise-free surface's rounding alone would be flagged; a run tile by tile
+        pins an estimate first and floors it as the whole run does).
 
     Returns
     -------
@@ -313,6 +317,8 @@ def detect_height_field(
         sig, source = estimate_sigma(terms, None if sample is None else sample[rows]), "auto"
     else:
         sig, source = float(sigma), "given"
+    if sig < sigma_floor:
+        sig, source = float(sigma_floor), f"{source}, raised to the coordinates' rounding"
     if not sig > 0:  # a perfect synthetic surface: every residual is rounding
         sig = float(np.finfo(float).eps * max(1.0, float(np.abs(local).max())))
     # the half patches count only where the full patch is not one surface (scores_from_terms)

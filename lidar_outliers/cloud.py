@@ -46,6 +46,9 @@ class Cloud:
         in every part of it.
     file_points : int or None
         Points in the file (None: this cloud's), kept by a subset.
+    scales : (3,) float64 or None
+        The file's coordinate resolution (the LAS header's scales; None: not known): no
+        estimate of the noise goes below its rounding (``sigma: auto``).
     """
 
     xyz: np.ndarray
@@ -60,6 +63,7 @@ class Cloud:
     wanted: np.ndarray | None = None
     position: np.ndarray | None = None
     file_points: int | None = None
+    scales: np.ndarray | None = None
 
     @classmethod
     def from_arrays(
@@ -112,7 +116,15 @@ class Cloud:
             known=None if self.known is None else {k: v[index] for k, v in self.known.items()},
             wanted=None if self.wanted is None else self.wanted[index],
             position=self.positions()[index], file_points=self.points_in_file(),
+            scales=self.scales,
         )
+
+    def rounding_sigma(self) -> np.ndarray:
+        """(3,) the standard deviation of the coordinates' rounding to ``scales`` (zeros when
+        not known): the least noise any estimate may give."""
+        from algorithms.temporal.batch import rounding_sigma
+
+        return rounding_sigma(self.scales)
 
     def positions(self) -> np.ndarray:
         """(n,) each point's position in the file."""

@@ -441,7 +441,8 @@ def read_cloud(
         start = stop
         if progress is not None:
             progress(lo + (hi - lo) * stop / max(n, 1), f"reading {stop:,} of {n:,} points")
-    return Cloud(xyz, origin, gps, psid, cls, intensity, anchor=local_anchor(header, grid))
+    return Cloud(xyz, origin, gps, psid, cls, intensity, anchor=local_anchor(header, grid),
+                 scales=np.asarray(header.scales, dtype=np.float64))
 
 
 #: Points read for the profile choice (:func:`read_profile_sample`), whatever the file's size.

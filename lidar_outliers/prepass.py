@@ -40,6 +40,7 @@ from algorithms.temporal.batch import (
     SIGMA_SAMPLE_POINTS,
     estimate_sigma,
     result_info,
+    rounding_sigma,
     scores_from_differences,
 )
 from algorithms.temporal.parameters import check_params
@@ -98,6 +99,7 @@ def run_streamed(
     flags = np.lib.format.open_memmap(folder / "flags.npy", mode="w+", dtype=FLAGS_DTYPE,
                                       shape=(points,))
     out = Streamed(flags, {})
+    floor = rounding_sigma(lasio.inspect_las(in_path).scales)
     for k, stage in enumerate(stages):
         spec = get_detector(stage.detector)
         assert spec.streams and spec.flag_bit is not None
@@ -110,7 +112,7 @@ def run_streamed(
         work = folder / f"stage_{k}"
         report = None if progress is None else _reporter(progress, progress_at, spec.name)
         entry = stream_temporal_stage(source, params, points, work, score, flags,
-                                      FLAGS_DTYPE(spec.flag_bit), chunk_points, report)
+                                      FLAGS_DTYPE(spec.flag_bit), chunk_points, report, floor)
         shutil.rmtree(work, ignore_errors=True)
         out.scores[spec.name] = score
         out.stages.append(entry)
@@ -269,11 +271,12 @@ def _sorted_spans(folder: Path, chunk_points: int) -> Iterator[np.ndarray]:
 def stream_temporal_stage(
     source: Chunks, params: TemporalParameters, points: int, folder: Path, score: np.ndarray,
     flags: np.ndarray, bit: np.unsignedinteger, chunk_points: int,
-    report: Callable[[str], None] | None = None,
+    report: Callable[[str], None] | None = None, sigma_floor: np.ndarray | float = 0.0,
 ) -> dict[str, Any]:
     """``temporal`` over the points of ``source``: scores into ``score`` and ``bit`` into
     ``flags`` (file order); returns the stage's ``info`` and ``critical_value`` as
-    ``detect_temporal`` gives them on those points. ``report(message)`` after every chunk."""
+    ``detect_temporal`` gives them on those points (``sigma_floor`` as it takes it).
+    ``report(message)`` after every chunk."""
     p = check_params(params.n1, params.n2, params.sigma, params.alpha, params.max_gap)
     facts = survey(_reported(source, report, "reading", points))
     if facts.points == 0:  # the stages before flagged every point: the stage is skipped
@@ -293,7 +296,7 @@ def stream_temporal_stage(
         _reported(ordered, report, "smoothing", facts.valid), params, facts, gaps, folder,
         p.n1, p.n2)
     if p.sigma is None:
-        sigma, source_name = sample_sigma(diffs, chunk_points)
+        sigma, source_name = sample_sigma(diffs, chunk_points, sigma_floor)
     else:
         sigma, source_name = p.sigma, "given"
     tested = flagged = 0
@@ -425,7 +428,8 @@ def _count_before(rank: np.ndarray) -> np.ndarray:
     return out
 
 
-def sample_sigma(diffs: np.ndarray, chunk_points: int) -> tuple[np.ndarray, str]:
+def sample_sigma(diffs: np.ndarray, chunk_points: int,
+                 floor: np.ndarray | float = 0.0) -> tuple[np.ndarray, str]:
     """Sigma per axis as ``estimate_sigma`` makes it from all the rows: from the same evenly
     strided sample of the tested rows, gathered chunk by chunk."""
     tested = 0
@@ -442,4 +446,4 @@ def sample_sigma(diffs: np.ndarray, chunk_points: int) -> tuple[np.ndarray, str]
         parts.append(d[take])
         release(diffs)
     sample = np.concatenate(parts) if parts else np.zeros((0, 4))
-    return estimate_sigma(sample[:, :3], sample[:, 3])
+    return estimate_sigma(sample[:, :3], sample[:, 3], floor)

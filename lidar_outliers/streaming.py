@@ -16,6 +16,7 @@ import laspy
 import numpy as np
 
 from algorithms.temporal import TemporalStream
+from algorithms.temporal.batch import rounding_sigma
 from lidar_outliers import lasio
 from lidar_outliers.detectors import get_detector
 from lidar_outliers.lasio import LasFacts
@@ -51,7 +52,7 @@ def stream_temporal(
     stage = params.pipeline[0]
     spec = get_detector("temporal")
     stream = TemporalStream(n1=stage.n1, n2=stage.n2, sigma=stage.sigma, alpha=stage.alpha,
-                            max_gap=stage.max_gap)
+                            max_gap=stage.max_gap, sigma_floor=rounding_sigma(facts.scales))
     critical = stream.critical_value
     bit = FLAGS_DTYPE(spec.flag_bit)
     counts = _StreamCounts()

@@ -104,6 +104,8 @@ class TileSet:
     gps_range: tuple[float, float] | None = None  # finite gps_time min, max (None: no finite)
     #: Detectors whose pre-pass facts lie beside the cells (:func:`prepare_stage`).
     prepared: tuple[str, ...] = ()
+    #: The file's coordinate resolution (header scales), for :attr:`Cloud.scales`.
+    scales: np.ndarray | None = None
     #: Brings a cell's file into ``folder`` when it is not there (a worker that got the
     #: manifest only fetches the cells its tile needs from the job's storage).
     fetch: Callable[[tuple[int, int], Path], None] | None = None
@@ -117,6 +119,7 @@ class TileSet:
                 "has_gps_time": self.has_gps_time,
                 "gps_range": list(self.gps_range) if self.gps_range else None,
                 "prepared": list(self.prepared),
+                "scales": None if self.scales is None else self.scales.tolist(),
                 "cells": [[c, r, n] for (c, r), n in sorted(self.cells.items())]}
 
     @classmethod
@@ -125,7 +128,8 @@ class TileSet:
                    np.asarray(doc["origin"]), int(doc["points"]), bool(doc["has_gps_time"]),
                    {(int(c), int(r)): int(n) for c, r, n in doc["cells"]},
                    tuple(doc["gps_range"]) if doc.get("gps_range") else None,
-                   prepared=tuple(doc.get("prepared", ())))
+                   prepared=tuple(doc.get("prepared", ())),
+                   scales=None if doc.get("scales") is None else np.asarray(doc["scales"]))
 
     def gps_probe(self) -> np.ndarray | None:
         """Times that :func:`~lidar_outliers.pipeline.usable_gps_time` judges as it would the
@@ -219,7 +223,8 @@ def partition(
         if progress is not None:
             progress(lo + (hi - lo) * stop / max(n, 1), f"cutting tiles: {stop:,} of {n:,} points")
     gps_range = (t_lo, t_hi) if t_lo <= t_hi else None
-    tiles = TileSet(folder, float(tile_size), anchor, origin, n, has_gps, cells, gps_range)
+    tiles = TileSet(folder, float(tile_size), anchor, origin, n, has_gps, cells, gps_range,
+                    scales=scales)
     write_json_atomic(folder / MANIFEST, tiles.to_json())
     return tiles
 
@@ -323,7 +328,7 @@ def tile_cloud(tiles: TileSet, rec: np.ndarray, trajectory: np.ndarray | None = 
         classification=np.ascontiguousarray(rec["classification"]),
         intensity=np.ascontiguousarray(rec["intensity"]), trajectory=trajectory,
         anchor=tiles.anchor, position=np.ascontiguousarray(rec["index"]),
-        file_points=tiles.points,
+        file_points=tiles.points, scales=tiles.scales,
     )
 
 

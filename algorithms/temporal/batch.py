@@ -107,8 +107,10 @@ def unit_differences(s: SortedPoints, p: ResolvedParameters) -> tuple[np.ndarray
     return segment_differences(s.t, s.z, s.starts, s.ends, p.n1, p.n2)
 
 
-def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray) -> tuple[np.ndarray, str]:
-    """Robust per-axis sigma from unit-sigma prediction differences.
+def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray,
+                   floor: float | np.ndarray = 0.0) -> tuple[np.ndarray, str]:
+    """Robust per-axis sigma from unit-sigma prediction differences, never below ``floor``
+    (metres, one or per axis: the coordinates' rounding, :func:`rounding_sigma`).
 
     With one sigma per axis, eq. 17 is dz / (sigma * sigma_dz(unit)), so r = dz / sigma_dz(unit)
     has standard deviation sigma under H0; its MAD-based sigma ignores the outliers.
@@ -133,7 +135,18 @@ def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray) -> tuple[np.n
             # All residuals zero: any positive sigma gives score 0.
             sigma[j] = spread if spread > 0 else 1.0
             source = "std"
+    if np.any(sigma < floor):
+        sigma, source = np.maximum(sigma, floor), f"{source}, raised to the coordinates' rounding"
     return sigma, source
+
+
+def rounding_sigma(scales: np.ndarray | None) -> np.ndarray:
+    """(3,) standard deviation of coordinates rounded to the LAS ``scales`` (uniform rounding
+    error: scale / sqrt(12)); zeros when not known. No estimate of the noise can be smaller:
+    below it, a noise-free surface's rounding alone would be flagged."""
+    if scales is None:
+        return np.zeros(3)
+    return np.abs(np.asarray(scales, dtype=np.float64)) / math.sqrt(12.0)
 
 
 def scores_from_differences(
@@ -162,6 +175,7 @@ def detect_temporal(
     sigma: float | str | Sequence[float] = "auto",
     alpha: float = 0.001,
     max_gap: float | str = "auto",
+    sigma_floor: float | Sequence[float] = 0.0,
 ) -> DetectorResult:
     """Algorithm (a): moving fixed-interval smoother outlier test (eqs. 1-17).
 
@@ -177,6 +191,8 @@ def detect_temporal(
     alpha : two-sided significance level of the normal test of eq. 17.
     max_gap : seconds; a time step above it starts a new segment. "auto": 5 x the group's median
         positive time step.
+    sigma_floor : metres, one or per axis: the least "auto" sigma (the coordinates' rounding,
+        :func:`rounding_sigma`).
 
     Returns
     -------
@@ -201,7 +217,7 @@ def detect_temporal(
     s = prepare(xyz, t, group, p)
     dz, sdz = unit_differences(s, p)
     if p.sigma is None:
-        sigma_axes, source = estimate_sigma(dz, sdz)
+        sigma_axes, source = estimate_sigma(dz, sdz, np.asarray(sigma_floor, dtype=np.float64))
     else:
         sigma_axes, source = p.sigma, "given"
     score_sorted = scores_from_differences(dz, sdz, sigma_axes)

@@ -92,8 +92,10 @@ class TemporalStream:
         warmup_points: int = 200_000,
         max_gap_by_group: Mapping[int, float] | None = None,
         differences: bool = False,
+        sigma_floor: float | Sequence[float] = 0.0,
     ) -> None:
         self._p = check_params(n1, n2, sigma, alpha, max_gap)
+        self._sigma_floor = np.asarray(sigma_floor, dtype=np.float64)
         self._given_gaps = None if max_gap_by_group is None else dict(max_gap_by_group)
         self._differences = bool(differences)
         if isinstance(warmup_points, bool) or not isinstance(warmup_points, int | np.integer):
@@ -186,7 +188,7 @@ class TemporalStream:
                     self._tail(gid).max_gap = gap
         if self._sigma is None:
             dz, sdz = unit_differences(s, self._p)
-            self._sigma, self._sigma_source = estimate_sigma(dz, sdz)
+            self._sigma, self._sigma_source = estimate_sigma(dz, sdz, self._sigma_floor)
         self._resolved = True
         return self._process(xyz, t, group, index, final)
 

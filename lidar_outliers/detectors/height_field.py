@@ -25,7 +25,8 @@ def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
     from algorithms.height_field import detect_height_field
 
     return detect_height_field(cloud.xyz, **params.as_dict(), origin=grid_origin(cloud),
-                               wanted=cloud.wanted, sample=sigma_points(cloud))
+                               wanted=cloud.wanted, sample=sigma_points(cloud),
+                               sigma_floor=float(cloud.rounding_sigma().max()))
 
 
 def sigma_points(cloud: Cloud) -> np.ndarray:

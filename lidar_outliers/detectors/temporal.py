@@ -16,7 +16,7 @@ def run(cloud: Cloud, params: TemporalParameters) -> DetectorResult:
     return detect_temporal(
         cloud.xyz, cloud.require_gps_time("temporal"), group,
         n1=params.n1, n2=params.n2, sigma=params.sigma, alpha=params.alpha,
-        max_gap=params.max_gap,
+        max_gap=params.max_gap, sigma_floor=cloud.rounding_sigma(),
     )
 
 

@@ -367,3 +367,57 @@ def test_transient_leaves_points_without_a_time_untested(tmp_path):
     stage = result.statistics["stages"][0]
     assert stage["info"]["points_without_time"] == 3
     assert stage["points_tested"] == len(cloud) - 3
+
+
+def _noise_free_file(tmp_path, name="clean.las"):
+    """A straight drive over a tilted plane, recorded at the LAS millimetre and nothing else:
+    every residual is the coordinates' rounding."""
+    n = 6000
+    t = 1000.0 + np.arange(n) * 1e-4
+    along = np.arange(n) * 0.01
+    across = 2.5 + 2.5 * np.sin(np.arange(n) * 0.02)  # a smooth sweep
+    xyz = np.c_[500_000.0 + along, 5_000_000.0 + across, 100.0 + 0.02 * along + 0.1 * across]
+    return write_las(tmp_path / name, xyz, gps_time=t, point_format=1,
+                     offsets=(500_000.0, 5_000_000.0, 0.0))
+
+
+@pytest.mark.parametrize("streaming", [False, True])
+def test_auto_sigma_never_goes_below_the_coordinates_rounding(tmp_path, streaming):
+    src = _noise_free_file(tmp_path)
+    stats = process_file(src, tmp_path / "t.las", {"pipeline": [{"detector": "temporal"}]},
+                         streaming=streaming)
+    info = stats["stages"][0]["info"]
+    rounding = 0.001 / np.sqrt(12.0)
+    assert min(info["sigma"].values()) >= rounding * (1 - 1e-12)
+    assert info["sigma_source"].endswith("raised to the coordinates' rounding")
+    assert stats["stages"][0]["points_flagged"] == 0
+    stats = process_file(src, tmp_path / "h.las", {"pipeline": [{"detector": "height_field"}]})
+    info = stats["stages"][0]["info"]
+    assert info["sigma"] >= rounding * (1 - 1e-12) and stats["stages"][0]["points_flagged"] == 0
+
+
+def test_height_field_sigma_floor_holds_estimated_and_given_sigma():
+    from algorithms.height_field import detect_height_field
+
+    g = np.stack(np.meshgrid(np.arange(40), np.arange(40)), -1).reshape(-1, 2) * 0.1
+    plane = np.c_[g, 0.1 * g[:, 0]]  # exact: every residual is float rounding
+    res = detect_height_field(plane, sigma_floor=0.001)
+    assert res.info["sigma"] == 0.001 and not res.flagged.any()
+    assert res.info["sigma_source"] == "auto, raised to the coordinates' rounding"
+    given = detect_height_field(plane, sigma=1e-9, sigma_floor=0.001)
+    assert given.info["sigma"] == 0.001 and not given.flagged.any()
+    spiked = plane.copy()
+    spiked[500, 2] += 0.05  # 50 floors up
+    assert detect_height_field(spiked, sigma_floor=0.001).flagged[500]
+
+
+def test_sigma_floor_tiled_equals_whole(tmp_path):
+    src = _noise_free_file(tmp_path)
+    pipeline = {"pipeline": [{"detector": "height_field"}]}
+    whole = process_file(src, tmp_path / "whole.las", pipeline)
+    tiled = process_file(src, tmp_path / "tiled.las", pipeline, tile_size=15.0)
+    assert tiled["mode"] == "tiled" and whole["mode"] == "in memory"
+    a, b = laspy.read(tmp_path / "whole.las"), laspy.read(tmp_path / "tiled.las")
+    np.testing.assert_array_equal(a.outlier_flags, b.outlier_flags)
+    np.testing.assert_allclose(a.height_field_score, b.height_field_score, rtol=1e-5,
+                               atol=1e-5)
