@@ -63,7 +63,7 @@ class PipelineParams(BaseModel):
     noise_class: int = Field(
         7, ge=0, le=255, description="ASPRS class for flagged points (7 or 18)."
     )
-    reference_classes: list[int] | None = Field(
+    reference_classes: list[Annotated[int, Field(ge=0, le=255)]] | None = Field(
         None,
         description="Input classes taken as truth (e.g. [7, 18] for noise, [2] for ground); adds "
         "confusion counts to the statistics.",

@@ -253,7 +253,8 @@ class JobService:
                 name = name or source.name
                 facts = las_facts(source, name)
             facts = {k: facts[k] for k in FACT_KEYS if k in facts} | {"name": name}
-            preflight(PipelineParams.model_validate(params), int(facts.get("point_format", 0)))
+            preflight(PipelineParams.model_validate(params), int(facts.get("point_format", 0)),
+                      bool(facts.get("has_gps_time", True)))
             if isinstance(trajectory, Upload):
                 facts["trajectory"] = self._upload_facts(trajectory, "trajectory")
             elif trajectory is not None:

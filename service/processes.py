@@ -189,15 +189,23 @@ def summary(process_id: str, base_url: str = "") -> dict[str, Any]:
     }
 
 
-def preflight(params: PipelineParams, point_format: int) -> None:
+def preflight(params: PipelineParams, point_format: int, has_gps_time: bool = True) -> None:
     """Refuse before queueing what the worker would refuse at once: a detector twice in a
-    pipeline, a noise class the point format cannot hold."""
+    pipeline, a noise class the point format cannot hold, a stage that needs gps_time on a
+    point format without it."""
+    from lidar_outliers.detectors import get_detector
     from lidar_outliers.errors import ParameterError
     from lidar_outliers.pipeline import check_noise_class, resolve_stages
 
     try:
         resolve_stages(params, None)
         check_noise_class(params, point_format)
+        for stage in params.pipeline or []:
+            if "gps_time" in get_detector(stage.detector).needs and not has_gps_time:
+                raise ParameterError(
+                    f"the {stage.detector} detector needs gps_time, which point format "
+                    f"{point_format} does not have (use point format 1, 3-10, or another "
+                    "detector)")
     except ParameterError as exc:
         raise Problem(422, "invalid-parameter", str(exc),
                       errors=[{"parameter": "inputs", "message": str(exc)}]) from None

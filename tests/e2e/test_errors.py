@@ -145,6 +145,20 @@ def test_bad_parameters_are_422_naming_the_parameter(
         assert parameter in body["detail"], body["detail"]
 
 
+def test_a_stage_that_needs_gps_time_on_a_format_without_it_is_422(
+    stack: Stack, keys: dict, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    path = tmp_path_factory.mktemp("pf0") / "no_time.las"
+    write_cloud(path, n=500, point_format=0)
+    with stack.client(keys["carol"]) as client:
+        for process, inputs in (("temporal", None),
+                                ("pipeline", {"pipeline": [{"detector": "patch"},
+                                                           {"detector": "transient"}]})):
+            body = assert_problem(submit(client, path.read_bytes(), inputs, process), 422,
+                                  "invalid-parameter")
+            assert "needs gps_time, which point format 0 does not have" in body["detail"]
+
+
 def test_malformed_requests(stack: Stack, keys: dict, las_bytes: bytes) -> None:
     with stack.client(keys["carol"]) as client:
         answer = client.post("/processes/temporal/execution",

@@ -280,6 +280,9 @@ def test_parameter_errors_name_the_field(tmp_path, spiky):
         parse_pipeline_params({"pipeline": [{"detector": "median"}]})
     with pytest.raises(ParameterError, match="not valid JSON"):
         parse_pipeline_params("{")
+    for bad in (300, -1):  # LAS classes are 0-255
+        with pytest.raises(ParameterError, match=r"reference_classes\[0\]: "):
+            parse_pipeline_params({"reference_classes": [bad]})
     with pytest.raises(ParameterError, match="appears twice"):
         resolve_stages(PipelineParams(pipeline=[{"detector": "patch"}, {"detector": "patch"}]),
                        None)
