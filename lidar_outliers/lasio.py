@@ -300,6 +300,11 @@ def _check_laszip(
             f"{name}: LAZ file with variable-size chunks has no valid chunk table "
             f"(offset {table_offset}, file {size} bytes)"
         )
+    if table_offset > size - 8:  # -1: a writer that kept no table; nothing to check
+        raise LasFormatError(
+            f"{name} is truncated: its compressed points end at byte {table_offset} (where "
+            f"their chunk table starts) but the file has {size} bytes; send the whole file"
+        )
 
 
 def _wkt(records: list[tuple[str, int, bytes]]) -> str | None:

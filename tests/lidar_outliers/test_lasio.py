@@ -235,6 +235,18 @@ def test_inspect_refuses_bad_headers_with_one_line(tmp_path, rng, case):
     assert "\n" not in message and message.startswith("bad.las")
 
 
+def test_inspect_refuses_a_laz_file_cut_short(tmp_path, rng):
+    # an interrupted upload or copy: the chunk table the points point to is past the end
+    xyz, t, _ = scan_line_cloud(3000, rng)
+    whole = write_las(tmp_path / "whole.laz", xyz, gps_time=t).read_bytes()
+    lasio.inspect_las(tmp_path / "whole.laz")
+    for keep in (len(whole) // 2, len(whole) - 9):
+        cut = tmp_path / "cut.laz"
+        cut.write_bytes(whole[:keep])
+        with pytest.raises(LasFormatError, match=rf"^cut.laz is truncated: .* has {keep} bytes"):
+            lasio.inspect_las(cut)
+
+
 def test_inspect_facts(tmp_path, rng):
     xyz, t, _ = scan_line_cloud(50, rng)
     path = write_las(tmp_path / "f.laz", xyz, gps_time=t, point_format=7, crs=True,
