@@ -95,3 +95,33 @@ def by_distance_then_index(dist: np.ndarray, idx: np.ndarray) -> None:
                 d[b + 1], i[b + 1] = d[b], i[b]
                 b -= 1
             d[b + 1], i[b + 1] = dv, iv
+
+
+@njit(cache=True, parallel=True)
+def first_other_points(dist: np.ndarray, idx: np.ndarray, own: np.ndarray, n: int, k: int,
+                       radius: float, out_idx: np.ndarray, out_near: np.ndarray) -> np.ndarray:
+    """The k nearest *other* points of each query from a k-d tree's answer.
+
+    dist, idx (m, kq): the tree's rows (missing neighbours as index n); own (m,): each query's
+    own index, skipped wherever it appears (points that coincide may come before it). Writes
+    out_idx (m, k) and out_near (m, k) (within ``radius``; False for padding) and returns (m,)
+    bool: the rows whose k-th and (k+1)-th other points lie equally far within ``radius``
+    (a tie the tree broke in its own order)."""
+    m, kq = dist.shape
+    tied = np.zeros(m, dtype=np.bool_)
+    for r in prange(m):
+        taken = 0
+        kth = np.inf
+        for c in range(kq):
+            j = idx[r, c]
+            if j == own[r] or j >= n:
+                continue
+            if taken < k:
+                out_idx[r, taken] = j
+                out_near[r, taken] = dist[r, c] <= radius
+                kth = dist[r, c]
+                taken += 1
+            else:
+                tied[r] = dist[r, c] == kth and kth <= radius
+                break
+    return tied

@@ -117,47 +117,42 @@ def neighbour_table(xyz: np.ndarray, k: int, radius: float, rows: np.ndarray | N
     near = np.zeros((m, k), dtype=bool)
     if m == 0:
         return idx, near
+    from algorithms.neighbours import first_other_points
+
     tree = cKDTree(xyz)
     for s in range(0, m, KNN_BATCH):
         batch = rows[s:s + KNN_BATCH]
         d, j = tree.query(xyz[batch], k=kq, workers=-1)
-        d, j = d.reshape(-1, kq), j.reshape(-1, kq)
-        # drop each point itself (not necessarily column 0 when points coincide)
-        not_self = (j != batch[:, None]) & (j < n)
-        rank = np.cumsum(not_self, axis=1)
-        sel = not_self & (rank <= k)
-        # the selected columns first, in distance order (stable sort of "not selected")
-        cols = np.argsort(~sel, axis=1, kind="stable")[:, :k]
-        width = cols.shape[1]
-        idx[s:s + len(j), :width] = np.take_along_axis(j, cols, axis=1)
-        near[s:s + len(j), :width] = (np.take_along_axis(d, cols, axis=1) <= radius) & (
-            np.take_along_axis(sel, cols, axis=1))
-        for r in _tied_rows(d, not_self, rank, k, radius):
-            idx[s + r], near[s + r] = _tied_neighbours(tree, xyz, int(batch[r]), d[r], k,
-                                                       radius)
+        d, j = d.reshape(-1, kq), j.reshape(-1, kq).astype(np.int64)
+        # each point itself is dropped (not necessarily column 0 when points coincide)
+        tied = first_other_points(d, j, batch, n, k, radius, idx[s:s + len(j)],
+                                  near[s:s + len(j)])
+        rows_tied = np.flatnonzero(tied)
+        if rows_tied.size:
+            idx[s + rows_tied], near[s + rows_tied] = _tied_neighbours(
+                tree, xyz, batch[rows_tied], d[rows_tied], k, radius)
     return idx, near
 
 
-def _tied_rows(d: np.ndarray, not_self: np.ndarray, rank: np.ndarray, k: int,
-               radius: float) -> np.ndarray:
-    """Rows whose k-th and (k+1)-th other points lie equally far, within ``radius``."""
-    kth, nxt = not_self & (rank == k), not_self & (rank == k + 1)
-    both = kth.any(axis=1) & nxt.any(axis=1)
-    r = np.arange(len(d))
-    dk, dn = d[r, np.argmax(kth, axis=1)], d[r, np.argmax(nxt, axis=1)]
-    return np.flatnonzero(both & (dk == dn) & (dk <= radius))
-
-
-def _tied_neighbours(tree, xyz: np.ndarray, point: int, d: np.ndarray, k: int,
+def _tied_neighbours(tree, xyz: np.ndarray, points: np.ndarray, d: np.ndarray, k: int,
                      radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """The k nearest other points of ``point`` when several lie as far as the k-th: by distance,
-    then index (the order in which the whole cloud and a tile hold them alike)."""
-    far = float(np.max(d[np.isfinite(d)]))
-    cand = np.asarray(tree.query_ball_point(xyz[point], far * (1 + 1e-9)), dtype=np.int64)
-    cand = cand[cand != point]
-    dist = np.sqrt(np.sum((xyz[cand] - xyz[point]) ** 2, axis=1))
-    order = np.lexsort((cand, dist))[:k]
-    return cand[order], dist[order] <= radius
+    """(m, k) the k nearest other points of each of ``points`` where several lie as far as the
+    k-th, and whether each is within ``radius``: by distance, then index (the order in which
+    the whole cloud and a tile hold them alike). ``d`` (m, kq): the tree's distances of each
+    (its largest finite one reaches past the tie). One ball query and one sort for all."""
+    far = np.max(np.where(np.isfinite(d), d, -np.inf), axis=1)
+    near_lists = tree.query_ball_point(xyz[points], far * (1 + 1e-9), workers=-1)
+    sizes = np.fromiter((len(c) for c in near_lists), dtype=np.int64, count=len(near_lists))
+    cand = np.concatenate(near_lists).astype(np.int64)
+    row = np.repeat(np.arange(len(points)), sizes)
+    other = cand != points[row]
+    cand, row = cand[other], row[other]
+    dist = np.sqrt(np.sum((xyz[cand] - xyz[points[row]]) ** 2, axis=1))
+    order = np.lexsort((cand, dist, row))  # by row, then distance, then index
+    cand, dist = cand[order], dist[order]
+    first = np.searchsorted(row[order], np.arange(len(points)))
+    take = first[:, None] + np.arange(k)
+    return cand[take], dist[take] <= radius
 
 
 def persistent_points(gps_time: np.ndarray, idx: np.ndarray, near: np.ndarray,

@@ -177,8 +177,11 @@ def test_neighbours_equally_far_are_taken_in_index_order_in_any_part():
         np.testing.assert_array_equal(part_near.sum(axis=1), near[whole].sum(axis=1))
     dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
     np.fill_diagonal(dist, np.inf)
-    first = np.lexsort((np.arange(len(xyz)), dist[0]))[:k]  # by distance, then index
-    assert sorted(idx[0]) == sorted(first)
+    for p in range(len(xyz)):  # every row: by distance, then index, as brute force
+        first = np.lexsort((np.arange(len(xyz)), dist[p]))[:k]
+        assert sorted(idx[p]) == sorted(first)
+        np.testing.assert_array_equal(np.sort(dist[p, idx[p]]), np.sort(dist[p, first]))
+        assert near[p].sum() == np.count_nonzero(dist[p, first] <= radius)
 
 
 def test_coincident_points_exclude_only_themselves():
