@@ -272,8 +272,10 @@ def revisited_clusters(xyz: np.ndarray, persistent: np.ndarray, single: np.ndarr
     seen = np.flatnonzero(persistent)
     if seen.size == 0:
         return np.zeros(n_comp, dtype=bool)
-    covered = cKDTree(xyz[seen, :2]).query_ball_point(
-        xyz[single, :2], radius, return_length=True) > 0
+    # the nearest persistent point within radius (inclusive) is enough: no ball of them
+    nearest, _ = cKDTree(xyz[seen, :2]).query(
+        xyz[single, :2], k=1, distance_upper_bound=np.nextafter(radius, np.inf), workers=-1)
+    covered = nearest <= radius
     size = np.bincount(label, minlength=n_comp)
     under = 2.0 * np.bincount(label, weights=covered, minlength=n_comp) >= size
     return beside & under

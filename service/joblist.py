@@ -37,7 +37,11 @@ def _stamp(text: str) -> str:
         raise _bad("datetime", f"{text!r} is not an RFC 3339 date-time") from None
     if moment.tzinfo is None:
         raise _bad("datetime", f"{text!r} has no time zone (add Z or an offset)")
-    return moment.astimezone(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    try:
+        utc = moment.astimezone(UTC)
+    except OverflowError:  # year 1 east of UTC, year 9999 west of it
+        raise _bad("datetime", f"{text!r} lies outside the years 1-9999 in UTC") from None
+    return utc.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def parse_datetime(value: str | None) -> tuple[str | None, str | None]:

@@ -45,7 +45,7 @@ from lidar_outliers.params import PipelineParams
 from lidar_outliers.tools.plot import render_preview
 from lidar_outliers.trajectory import describe_trajectory, read_trajectory
 from service import queue
-from service.problems import Problem, insufficient_storage, storage_unavailable
+from service.problems import Problem, insufficient_storage, storage_unavailable, upload_gone
 from service.processes import CLOUD_INPUT, TRAJECTORY_INPUT, preflight, resolve_inputs
 from service.uploads import too_large
 
@@ -206,6 +206,8 @@ class JobService:
             if kind == "trajectory":
                 return trajectory_facts(local, upload.name)
             return las_facts(local, upload.name)
+        except ObjectMissing:
+            raise upload_gone(kind) from None
         except StorageError as exc:
             raise storage_unavailable(exc) from None
         finally:
@@ -281,6 +283,10 @@ class JobService:
                 # a user's n-th active job waits behind every other user's earlier ones
                 self.enqueue(job.id, min(job.active_before, 9))
             except Exception as exc:
+                if isinstance(exc, ObjectMissing) and any(
+                        isinstance(p, Upload) for p in (source, trajectory)):
+                    self._forget(job)  # never queued: no failed job is left behind
+                    raise upload_gone("cloud") from None
                 self._abandon(job, exc)
                 if isinstance(exc, StorageError) or is_disk_full(exc):
                     raise storage_unavailable(exc) from None
@@ -296,6 +302,14 @@ class JobService:
             self.storage.copy(source.key, key)
         else:
             self.storage.put_file(key, source, move=True)
+
+    def _forget(self, job: Job) -> None:
+        """A recorded job whose input went away before it was stored: no trace of it."""
+        try:
+            self.storage.delete_prefix(layout.job_prefix(job.id))
+        except StorageError:
+            log.exception("could not remove the files of job %s", job.id)
+        self.store.delete_job(job.id)
 
     def _abandon(self, job: Job, exc: Exception) -> None:
         """A recorded job that could not be stored or queued: failed, its bytes released."""
@@ -417,6 +431,15 @@ class JobService:
             self.storage.put_file(key, out, move=True)
 
         self._with_local_result(job, build, statistics)
+        now = self.store.get_job(job.id)
+        if now is None or now.status is not JobStatus.successful:
+            # dismissed while it was made: dismissal deletes the job's files before or after
+            # this put; after, the status says so here
+            try:
+                self.storage.delete(key)
+            except StorageError:
+                log.exception("could not remove %s of a dismissed job", key)
+            raise Problem(404, "no-such-job", f"the results of job {job.id} were deleted")
         info = self._info(key)
         if info is None:  # dismissed meanwhile
             raise Problem(404, "no-such-job", f"the results of job {job.id} were deleted")

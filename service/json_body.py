@@ -22,8 +22,10 @@ MAX_INT = 2**63 - 1
 #: Longest integer literal parsed as a number (a longer one is refused without converting it).
 _MAX_INT_DIGITS = 20
 
-_STRING = re.compile(r'"(?:[^"\\]|\\.)*"', re.DOTALL)
-_BRACKET = re.compile(r"[\[\]{}]")
+#: One token of what matters for nesting: a whole string (possessive, so one attempt is
+#: linear), a bracket, or a quote that opens no complete string (invalid JSON: stop there,
+#: json.loads reports it; trying again from every later quote would be quadratic).
+_TOKEN = re.compile(r'"(?:[^"\\]|\\.)*+"|[\[\]{}]|"', re.DOTALL)
 
 
 class _TooBig:
@@ -37,8 +39,13 @@ def nesting_depth(text: str, limit: int = MAX_DEPTH) -> int:
     """Deepest array/object nesting of a JSON text, counting no further than ``limit + 1``
     (strings are skipped, so brackets inside them do not count)."""
     depth = deepest = 0
-    for match in _BRACKET.finditer(_STRING.sub('""', text)):
-        depth += 1 if match.group() in "[{" else -1
+    for match in _TOKEN.finditer(text):
+        token = match.group()
+        if token[0] == '"':
+            if len(token) == 1:
+                break
+            continue
+        depth += 1 if token in "[{" else -1
         if depth > deepest:
             deepest = depth
             if deepest > limit:

@@ -102,6 +102,13 @@ def insufficient_storage(exc: BaseException) -> Problem:
     return Problem(507, "insufficient-storage", detail)
 
 
+def upload_gone(parameter: str) -> Problem:
+    """422 for a job named on an upload that was deleted while the job was being created."""
+    message = "the upload was deleted before the job could take it; upload the file again"
+    return Problem(422, "invalid-parameter", f"{parameter}: {message}",
+                   errors=[{"parameter": parameter, "message": message}])
+
+
 def storage_unavailable(exc: Exception) -> Problem:
     """503 for a storage that failed (the API goes on; the client may retry); 507 when what
     failed is a full disk."""

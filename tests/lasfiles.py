@@ -170,6 +170,16 @@ def write_cloud(
     return idx
 
 
+def untimed_cloud(path: Path, n: int = 500) -> Path:
+    """:func:`write_cloud`'s road with every gps_time NaN: the header and the request are
+    fine, and the temporal detector fails in the worker (a job that fails)."""
+    write_cloud(path, n=n, point_format=1)
+    las = laspy.read(path)
+    las.gps_time = np.full(n, np.nan)
+    las.write(path)
+    return path
+
+
 def tile_scene(path: Path, n: int = 7000, seed: int = 3) -> Path:
     """A sloped, rolling 24 x 24 m ground with a 2 m box on it, 1 % of points 1.5 m off the
     surface, a few dark points (intensity 0), a drive's time stamps; near a UTM coordinate

@@ -119,7 +119,8 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
     inputs_model(process_id)  # 404 before reading a large body
     await run_in_threadpool(service.check_active_limit, user)  # 429 likewise
     content_type = request.headers.get("content-type", "")
-    if content_type.startswith("multipart/form-data"):
+    media_type = content_type.split(";", 1)[0].strip().lower()  # case-insensitive (RFC 9110)
+    if media_type == "multipart/form-data":
         limit, quota = await run_in_threadpool(service.upload_limit, user)
         refuse_declared_size(request.headers.get("content-length"), limit, quota,
                              MULTIPART_OVERHEAD)
@@ -130,12 +131,14 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
                                            service.incoming_dir, limit, quota)
         assert received.path is not None
         try:
-            inputs = _json_inputs(received.fields.get("inputs", ""), "inputs")
+            inputs = await run_in_threadpool(_json_inputs, received.fields.get("inputs", ""),
+                                             "inputs")
             params, cloud = service.parse_inputs(process_id, inputs)
             subscriber_text = received.fields.get("subscriber", "")
-            subscriber = await run_in_threadpool(
-                subscriber_of, _json_inputs(subscriber_text, "subscriber")
-                if subscriber_text.strip() else None, service.settings, base_url)
+            subscriber_doc = (await run_in_threadpool(_json_inputs, subscriber_text, "subscriber")
+                              if subscriber_text.strip() else None)
+            subscriber = await run_in_threadpool(subscriber_of, subscriber_doc,
+                                                 service.settings, base_url)
             if cloud is not None:
                 raise Problem(422, "invalid-parameter", "cloud: give the file in part `file` "
                               "or an href in a JSON request, not both")
@@ -146,11 +149,11 @@ async def execute(process_id: str, request: Request, service: ServiceDep,
                                       received.filename, trajectory=received.trajectory,
                                       trajectory_name=received.trajectory_name,
                                       subscriber=subscriber)
-    elif content_type.startswith("application/json"):
+    elif media_type == "application/json":
         body = await request.body()
         if len(body) > MAX_JSON_BYTES:
             raise Problem(413, "file-too-large", "a JSON execute request is at most 1 MiB")
-        document = _json_inputs(body.decode("utf-8", "replace"), "")
+        document = await run_in_threadpool(_json_inputs, body.decode("utf-8", "replace"), "")
         if not isinstance(document, dict) or not isinstance(document.get("inputs", {}), dict):
             raise Problem(400, "invalid-request", 'send {"inputs": {"cloud": {"href": '
                           '"/uploads/<id>"}, ...}}')

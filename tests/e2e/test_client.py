@@ -20,7 +20,7 @@ from lidar_outliers import view
 from lidar_outliers.client import Client, ServiceError
 from lidar_outliers.tools.simulator import simulate, write_simulation
 from tests.e2e.stack import ROOT, RedisServer, Stack, free_port, running_stack
-from tests.lasfiles import write_cloud
+from tests.lasfiles import untimed_cloud, write_cloud
 
 CLI = str(Path(sys.executable).parent / "lidar-outliers")
 
@@ -159,7 +159,7 @@ def test_cli_submit_downloads_result_and_statistics(stack: Stack, key: str, las_
 
 def test_cli_failed_job_exits_with_its_message(stack: Stack, key: str, tmp_path: Path) -> None:
     no_time = tmp_path / "no_time.las"
-    write_cloud(no_time, n=500, point_format=0)
+    untimed_cloud(no_time)
     answer = submit_cli(stack, key, str(no_time), "--detector", "temporal", "-o", "out.las",
                         cwd=tmp_path)
     assert answer.returncode == 1

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tests.e2e.stack import RedisServer, Stack, running_stack, wait_job
-from tests.lasfiles import write_cloud
+from tests.lasfiles import untimed_cloud, write_cloud
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +158,7 @@ def test_upload_then_execute_by_href(stack: Stack, key: str, las_file) -> None:
 
 def test_failed_job_reports_message(stack: Stack, key: str, tmp_path: Path) -> None:
     path = tmp_path / "no_time.las"
-    write_cloud(path, n=500, point_format=0)
+    untimed_cloud(path)
     with stack.client(key) as client:
         job = client.post("/processes/temporal/execution",
                           files={"file": ("no_time.las", path.read_bytes())}).json()["jobID"]

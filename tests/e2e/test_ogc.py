@@ -14,7 +14,7 @@ import pytest
 from openapi_spec_validator import validate as validate_openapi
 
 from tests.e2e.stack import RedisServer, Stack, running_stack, wait_job
-from tests.lasfiles import write_cloud
+from tests.lasfiles import untimed_cloud, write_cloud
 from tests.ogc_schemas import check
 from tests.receiver import Receiver
 
@@ -189,7 +189,7 @@ def test_prefer_wait_runs_a_small_cloud_synchronously(stack: Stack, key: str, sm
         wait_job(client, answer.json()["jobID"], ("successful", "failed"))
         # a job failing synchronously is a problem naming the job
         no_time = tmp_path / "no_time.las"
-        write_cloud(no_time, n=500, point_format=0)
+        untimed_cloud(no_time)
         failed = execute(client, no_time.read_bytes(), headers={"Prefer": "wait"})
         assert failed.status_code == 422 and failed.json()["type"] == "/problems/job-failed"
         assert "gps_time" in failed.json()["detail"]
@@ -200,7 +200,7 @@ def test_prefer_wait_runs_a_small_cloud_synchronously(stack: Stack, key: str, sm
 def test_job_list_filters(stack: Stack, small: bytes, tmp_path: Path) -> None:
     key = stack.add_user("lister")
     no_time = tmp_path / "no_time.las"
-    write_cloud(no_time, n=500, point_format=0)
+    untimed_cloud(no_time)
     with stack.client(key) as client:
         ok = execute(client, small).json()["jobID"]
         bad = execute(client, no_time.read_bytes()).json()["jobID"]
@@ -272,7 +272,7 @@ def test_subscriber_callbacks_reach_a_local_server_with_retries(
         assert started[0]["jobID"] == job and started[0]["status"] == "running"
 
         no_time = tmp_path / "no_time.las"
-        write_cloud(no_time, n=500, point_format=0)
+        untimed_cloud(no_time)
         job = execute(client, no_time.read_bytes(), subscriber=hooks).json()["jobID"]
         failed = receiver.wait_for("/failed")[0]
         check("statusInfo", failed)

@@ -26,7 +26,7 @@ from lidar_outliers.jobs.store import JobStatus, Store
 from service.jobs import JobService
 from service.problems import Problem
 from tests.backends import clear
-from tests.lasfiles import write_cloud
+from tests.lasfiles import write_cloud, write_las
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -122,13 +122,35 @@ def test_worker_run_writes_result_and_statistics(service, store, storage, settin
     assert storage.prefix_bytes(layout.job_prefix(job.id)) == 0
 
 
+def test_a_download_made_while_its_job_is_dismissed_leaves_no_file(service, store, storage,
+                                                                     settings, tmp_path) -> None:
+    # dismissal deletes the job's files; a derived file put after that must go too
+    alice, _ = store.add_user("alice")
+    job, _ = submit(service, alice, tmp_path)
+    assert execute_job(settings, store, job.id) is JobStatus.successful
+    key = layout.derived_key(job.id, "inliers", True)
+
+    def make_while_dismissed(result: Path, out: Path) -> None:
+        service.dismiss(alice, job.id)  # the user's DELETE lands mid-way
+        out.write_bytes(result.read_bytes())
+
+    with pytest.raises(Problem) as gone:
+        service._derive(store.get_job(job.id), key, make_while_dismissed)
+    assert gone.value.status == 404
+    assert storage.prefix_bytes(layout.job_prefix(job.id)) == 0
+
+
 def test_worker_failure_is_recorded_with_its_message(service, store, storage, settings,
                                                      tmp_path):
     alice, _ = store.add_user("alice")
-    job, _ = submit(service, alice, tmp_path, point_format=0)  # no gps_time
+    # every time stamp NaN: the header allows it, the temporal detector cannot run
+    path = write_las(tmp_path / "untimed.las", np.random.default_rng(1).random((500, 3)),
+                     gps_time=np.full(500, np.nan), point_format=1)
+    params, _ = service.parse_inputs("temporal", {"sigma": 0.01})
+    job = service.submit(alice, "temporal", params, path, "untimed.las")
     assert execute_job(settings, store, job.id) is JobStatus.failed
     failed = store.get_job(job.id)
-    assert "gps_time" in failed.message and failed.finished
+    assert "gps_time is all NaN" in failed.message and failed.finished
     assert not storage.exists(layout.result_key(job.id, False))
     assert failed.stored_bytes == storage.size(layout.input_key(job.id, False))
 
@@ -362,3 +384,16 @@ def test_jobs_from_a_stored_upload_and_trajectory(store: Store, storage: Storage
         service.submit(alice, "pipeline", params, cloud, trajectory=cloud)
     assert swapped.value.status == 422
     assert list(settings.scratch_dir.iterdir()) == []
+
+    # the upload deleted while a job is made from it: 422, and no job is left behind
+    jobs_before = store.list_jobs(alice.id, 100, 0)[1]
+    storage.delete(cloud.key)
+    with pytest.raises(Problem) as gone:
+        service.submit(alice, "pipeline", params, cloud)
+    assert gone.value.status == 422 and "upload the file again" in gone.value.detail
+    assert store.list_jobs(alice.id, 100, 0)[1] == jobs_before
+    with store.engine.begin() as db:  # without recorded facts the file is read first
+        db.execute(sa.update(uploads).where(uploads.c.id == cloud.id).values(facts=None))
+    with pytest.raises(Problem) as gone:
+        service.submit(alice, "pipeline", params, service.find_upload(alice, cloud.id))
+    assert gone.value.status == 422 and store.list_jobs(alice.id, 100, 0)[1] == jobs_before

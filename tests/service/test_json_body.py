@@ -67,3 +67,17 @@ def test_ordinary_documents_are_unchanged() -> None:
     with pytest.raises(Problem) as caught:
         parse_json("{not json")
     assert caught.value.status == 400
+
+
+@pytest.mark.parametrize("body", [
+    '{"inputs": {"x": "' + '\\"' * 500_000,  # a string that never closes: 1 MB of \"
+    '{"a": "' + '\\\\' * 400_000 + '" ' + '"' * 100_000,
+    '"' * 1_000_000,
+])
+def test_unclosed_strings_are_scanned_once_and_refused(body: str) -> None:
+    # each later quote must not start the scan of the rest again (quadratic: hours at 1 MB,
+    # while the event loop waits)
+    assert nesting_depth(body) <= 2
+    with pytest.raises(Problem) as err:
+        parse_json(body)
+    assert err.value.status == 400 and "not valid JSON" in err.value.detail

@@ -46,7 +46,9 @@ def test_datetime_filter_bounds(value: str | None, bounds: tuple) -> None:
 
 
 @pytest.mark.parametrize("value", ["yesterday", "2025-01-02T03:04:05", "../..", "/",
-                                   "2025-01-02T00:00:00Z/2025-01-01T00:00:00Z", "a/b/c"])
+                                   "2025-01-02T00:00:00Z/2025-01-01T00:00:00Z", "a/b/c",
+                                   "0001-01-01T00:00:00+14:00", "9999-12-31T23:59:59-14:00",
+                                   "../0001-01-01T00:00:00+01:00"])
 def test_bad_datetime_filter_is_a_400_naming_it(value: str) -> None:
     with pytest.raises(Problem) as caught:
         parse_datetime(value)

@@ -133,7 +133,7 @@ def test_bad_input_files_exit_1_with_one_line(capsys, tmp_path, cloud_file):
         ([str(text)], 1, "notes.las is not a LAS/LAZ file"),
         ([str(truncated)], 1, "cut.las is truncated: header says 2000 points"),
         ([str(tmp_path / "missing.las")], 1, "cannot read missing.las"),
-        ([str(cut_laz), "--detector", "temporal"], 1, "cut.laz: cannot read the points"),
+        ([str(cut_laz), "--detector", "temporal"], 1, "cut.laz is truncated: its compressed"),
         ([str(no_time), "--detector", "temporal"], 1, "the temporal detector needs gps_time"),
         ([str(cloud_file), "--params", str(bad_params)], 2, "pipeline[0].n_1: unknown parameter"),
         ([str(cloud_file), "--params", str(tmp_path / "nope.json")], 2, "cannot read --params"),
