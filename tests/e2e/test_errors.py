@@ -159,6 +159,20 @@ def test_a_stage_that_needs_gps_time_on_a_format_without_it_is_422(
             assert "needs gps_time, which point format 0 does not have" in body["detail"]
 
 
+def test_an_unclosed_json_string_is_a_400_and_the_api_keeps_serving(
+    stack: Stack, keys: dict, las_bytes: bytes
+) -> None:
+    evil = '{"inputs": {"x": "' + '\\"' * 200_000  # 400 kB of \" and no closing quote
+    with stack.client(keys["carol"]) as client:
+        answer = client.post("/processes/dror/execution", content=evil,
+                             headers={"Content-Type": "Application/JSON"})
+        assert_problem(answer, 400, "invalid-parameter")
+        form = client.post("/processes/temporal/execution",
+                           files={"file": ("scan.las", las_bytes)}, data={"inputs": evil[10:]})
+        assert_problem(form, 400, "invalid-parameter")
+        assert client.get("/processes").status_code == 200  # this stack has no worker
+
+
 def test_malformed_requests(stack: Stack, keys: dict, las_bytes: bytes) -> None:
     with stack.client(keys["carol"]) as client:
         answer = client.post("/processes/temporal/execution",
