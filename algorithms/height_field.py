@@ -176,7 +176,18 @@ class HeightFieldParameters(Parameters):
         "auto", "Metres: the voxel size the low test cuts the cloud into pieces at, or 'auto' "
         "for the finest at which the surfaces are whole (reported); 0: none, the low test "
         "scores nothing.", ge=0, le=1000)
+    static_dt: float = param(
+        0.0, "Seconds: a point of a scattered patch (no surface) with a neighbour within 0.2 m "
+        "recorded at least this long before or after it was seen again, a static scatter such "
+        "as a tree crown, and is not flagged above the surface (e.g. 0.5; needs gps_time). "
+        "0: off (a persistent mist or fog is static too).", ge=0, le=1e6)
 
+
+#: Metres: how near a point recorded at another moment must lie for ``static_dt``
+#: (transient's default radius).
+STATIC_RADIUS = 0.2
+#: Neighbours seen again a point needs for ``static_dt``.
+STATIC_NEED = 1
 
 #: Points per cell a piece needs to be a real surface for the ``low`` test (detached's).
 LOW_PIECE_POINTS = 1000
@@ -264,6 +275,8 @@ def detect_height_field(
     wanted: np.ndarray | None = None,
     sample: np.ndarray | None = None,
     sigma_floor: float = 0.0,
+    static_dt: float = 0.0,
+    gps_time: np.ndarray | None = None,
 ) -> DetectorResult:
     """Edge-aware leave-one-out height-field outlier test (see the module docstring).
 
@@ -289,6 +302,13 @@ def detect_height_field(
     sigma_floor : metres, the least sigma used, estimated or given (the coordinates' rounding:
         below it a noise-free surface's rounding alone would be flagged; a run tile by tile
         pins an estimate first and floors it as the whole run does).
+    static_dt, gps_time : with both (seconds > 0, (n,) seconds), a point whose full patch is
+        not one surface and with one of its k nearest within STATIC_RADIUS recorded at least
+        ``static_dt`` before or after it was seen again: a static scatter, whose score above
+        the surface is capped at the threshold (the low test still applies). Transient
+        outliers (dust, exhaust while driving, rain, a moving object) are seen once; tree
+        crowns, whose scatter no height field holds, are seen again by the next pass or the
+        other scanner; so is a persistent mist.
 
     Returns
     -------
@@ -297,7 +317,7 @@ def detect_height_field(
     """
     HeightFieldParameters(k=k, sigma=sigma, threshold=threshold, rms_weight=rms_weight,
                           one_sided=one_sided, low=low, spacing_xy=spacing_xy, voxel=voxel)
-    from algorithms.height_field_fits import scores_from_terms, terms_of
+    from algorithms.height_field_fits import scores_from_terms, seen_again, terms_of
 
     arr = check_xyz(xyz)
     n = len(arr)
@@ -325,10 +345,19 @@ def detect_height_field(
     edge = ~(terms[:, 0, 2] <= HALF_GATE * sig)
     if edge.any():
         terms[edge] = terms_of(local, nbr[edge], rows[edge])
+    static = np.zeros(n, dtype=bool)
+    if gps_time is not None and static_dt > 0 and edge.any():
+        # a scatter that no height field holds (its full patch is not one surface), seen again
+        t = np.asarray(gps_time, dtype=np.float64)
+        static[rows[edge]] = seen_again(grid_local, t, nbr[edge], rows[edge], STATIC_RADIUS,
+                                        float(static_dt), STATIC_NEED)
     del nbr
     score = np.full(n, np.nan)
     score[rows] = scores_from_terms(terms, sig, float(rms_weight),
                                     ONE_SIDED_NZ if one_sided else 2.0, HALF_GATE, MAX_LEVERAGE)
+    info["points_static"] = int(np.count_nonzero(static))
+    info["points_static_above_threshold"] = int(np.count_nonzero(static & (score > threshold)))
+    score[static & (score > threshold)] = threshold  # seen again: not an outlier above
     if low:
         under, info["low_test"] = low_scores(grid_local, sig, spacing_xy, voxel)
         info["low_test"]["points_flagged"] = int(np.count_nonzero(under > threshold))

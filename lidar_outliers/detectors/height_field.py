@@ -26,7 +26,8 @@ def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
 
     return detect_height_field(cloud.xyz, **params.as_dict(), origin=grid_origin(cloud),
                                wanted=cloud.wanted, sample=sigma_points(cloud),
-                               sigma_floor=float(cloud.rounding_sigma().max()))
+                               sigma_floor=float(cloud.rounding_sigma().max()),
+                               gps_time=cloud.gps_time)
 
 
 def sigma_points(cloud: Cloud) -> np.ndarray:

@@ -325,3 +325,48 @@ def test_empty_and_tiny_clouds():
     assert detect_height_field(np.zeros((0, 3))).score.shape == (0,)
     res = detect_height_field(np.random.default_rng(9).normal(size=(4, 3)))
     assert np.isnan(res.score).all() and not res.flagged.any()
+
+
+def _crown_and_dust():
+    """Ground and a sparse tree crown each recorded on two passes 10 s apart, and a dust clump
+    recorded once: (xyz, gps_time, label 0 ground, 1 crown, 2 dust)."""
+    rng = np.random.default_rng(4)
+    g = rng.uniform(0, 20, (20000, 2))
+    ground = np.c_[g, rng.normal(0, 0.005, 20000)]
+    c = rng.normal(0, 1, (3000, 3))
+    c *= rng.uniform(0, 2, (3000, 1)) / np.linalg.norm(c, axis=1)[:, None]
+    dust = rng.normal(0, 0.15, (300, 3)) + [4, 4, 1.0]
+    xyz = np.r_[ground, c + [10, 10, 5], dust]
+    passes = np.where(rng.random(23000) < 0.5, 0.0, 10.0) + rng.random(23000)
+    t = np.r_[passes, 5.0 + rng.random(300) * 0.2]
+    label = np.r_[np.zeros(20000), np.ones(3000), np.full(300, 2)]
+    return xyz, t, label
+
+
+def test_a_scatter_seen_again_is_not_flagged_and_one_seen_once_is():
+    xyz, t, label = _crown_and_dust()
+    off = detect_height_field(xyz, gps_time=t, low=False)
+    on = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.5)
+    assert off.info["points_static"] == 0 and on.info["points_static"] > 1000
+    crown, dust = label == 1, label == 2
+    assert on.flagged[crown].mean() < 0.5 * off.flagged[crown].mean()
+    np.testing.assert_array_equal(on.flagged[dust], off.flagged[dust])
+    assert on.flagged[dust].any()
+    assert not (on.flagged & ~off.flagged).any()
+    # without times nothing is seen again
+    assert detect_height_field(xyz, low=False, static_dt=0.5).info["points_static"] == 0
+
+
+def test_seen_again_equals_a_loop_over_the_neighbours():
+    from algorithms.height_field_fits import seen_again
+
+    rng = np.random.default_rng(2)
+    xyz = rng.random((400, 3))
+    t = rng.choice([0.0, 0.3, 1.0, np.nan], 400)
+    nbr = np.argsort(np.linalg.norm(xyz[:, None] - xyz[None], axis=2), axis=1)[:, :8]
+    points = np.arange(400)
+    for need in (1, 2):
+        got = seen_again(xyz, t, nbr, points, 0.15, 0.5, need)
+        want = [sum(np.linalg.norm(xyz[j] - xyz[p]) <= 0.15 and abs(t[j] - t[p]) >= 0.5
+                    for j in nbr[p]) >= need for p in points]
+        np.testing.assert_array_equal(got, want)

@@ -430,3 +430,13 @@ def test_tiled_transient_keeps_points_on_tile_edges_far_from_the_origin(tmp_path
     assert stats["mode"] == "tiled"
     _assert_same(_results(whole), _results(tiled), ["transient"])
 
+
+def test_height_field_seen_again_tiled_equals_whole(scene, tmp_path):
+    """``static_dt`` reads the times of a point's k nearest, which a tile's halo holds."""
+    pipeline = {"pipeline": [{"detector": "height_field", "static_dt": 0.5, "low": False}]}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    stats_whole = process_file(scene, whole, pipeline)
+    stats = process_file(scene, tiled, pipeline, tile_size=TILE)
+    assert stats["mode"] == "tiled" and stats_whole["stages"][0]["info"]["points_static"] > 0
+    _assert_same(_results(whole), _results(tiled), ["height_field"])
+
