@@ -623,16 +623,15 @@ def _output_header(
 CLASHING_SUFFIX = "_input"
 
 
-def _rename_clashing_dimensions(header: laspy.LasHeader, new_dims: list[tuple[str, type, str]]
-                                ) -> dict[str, str]:
+def _rename_clashing_dimensions(header: laspy.LasHeader,
+                                new_dims: list[tuple[str, type, str]]) -> None:
     """Rename the input's extra dimensions that carry a result dimension's name but not its type
     (a ``detached_score`` of uint8 would cut scores to integers and NaN to 0): their bytes stay,
     under ``<name>_input``; a dimension of the same type (an earlier result) is overwritten in
-    place. Returns {old name: new name}."""
+    place."""
     wanted = {name: np.dtype(kind) for name, kind, _ in new_dims}
     dimensions = header.point_format.dimensions
     taken = {d.name for d in dimensions}
-    renamed = {}
     for i, dim in enumerate(dimensions):
         if dim.is_standard or dim.name not in wanted or (
                 dim.num_elements == 1 and dim.scales is None and dim.offsets is None
@@ -643,8 +642,6 @@ def _rename_clashing_dimensions(header: laspy.LasHeader, new_dims: list[tuple[st
             new += "_"
         dimensions[i] = dim._replace(name=new)
         taken.add(new)
-        renamed[dim.name] = new
-    return renamed
 
 
 def _register_unregistered_bytes(header: laspy.LasHeader) -> None:
