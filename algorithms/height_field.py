@@ -186,8 +186,6 @@ class HeightFieldParameters(Parameters):
 #: Metres: how near a point recorded at another moment must lie for ``static_dt``
 #: (transient's default radius).
 STATIC_RADIUS = 0.2
-#: Neighbours seen again a point needs for ``static_dt``.
-STATIC_NEED = 1
 
 #: Points per cell a piece needs to be a real surface for the ``low`` test (detached's).
 LOW_PIECE_POINTS = 1000
@@ -350,7 +348,7 @@ def detect_height_field(
         # a scatter that no height field holds (its full patch is not one surface), seen again
         t = np.asarray(gps_time, dtype=np.float64)
         static[rows[edge]] = seen_again(grid_local, t, nbr[edge], rows[edge], STATIC_RADIUS,
-                                        float(static_dt), STATIC_NEED)
+                                        float(static_dt))
     del nbr
     score = np.full(n, np.nan)
     score[rows] = scores_from_terms(terms, sig, float(rms_weight),

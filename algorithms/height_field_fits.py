@@ -221,16 +221,14 @@ def scores_from_terms(terms: np.ndarray, sigma: float, rms_weight: float, one_si
 
 @njit(cache=True, parallel=True)
 def seen_again(xyz: np.ndarray, t: np.ndarray, nbr: np.ndarray, points: np.ndarray,
-               radius: float, min_dt: float, need: int) -> np.ndarray:
-    """(m,) bool: at least ``need`` of point ``points[r]``'s neighbours ``nbr[r]`` lie within
-    ``radius`` and were recorded at least ``min_dt`` seconds before or after it (NaN times
-    never count)."""
+               radius: float, min_dt: float) -> np.ndarray:
+    """(m,) bool: one of point ``points[r]``'s neighbours ``nbr[r]`` lies within ``radius`` and
+    was recorded at least ``min_dt`` seconds before or after it (NaN times never count)."""
     m = nbr.shape[0]
     out = np.zeros(m, dtype=np.bool_)
     r2 = radius * radius
     for r in prange(m):
         p = points[r]
-        found = 0
         for c in range(nbr.shape[1]):
             j = nbr[r, c]
             if abs(t[j] - t[p]) >= min_dt:
@@ -239,8 +237,6 @@ def seen_again(xyz: np.ndarray, t: np.ndarray, nbr: np.ndarray, points: np.ndarr
                     e = xyz[j, a] - xyz[p, a]
                     d2 += e * e
                 if d2 <= r2:
-                    found += 1
-                    if found >= need:
-                        out[r] = True
-                        break
+                    out[r] = True
+                    break
     return out

@@ -71,14 +71,23 @@ def _ties_by_index(tree: cKDTree, xyz: np.ndarray, points: np.ndarray, radius: n
     """(m, k) the k nearest of each of ``points``, nearest first, equal distances by index;
     ``radius`` (m,) is each one's k-th distance. One ball query and one sort for all of them
     (mobile clouds tie often: points on a scan grid, a vehicle standing still)."""
+    row, flat = ball_candidates(tree, xyz, points, radius)
+    d2 = np.sum((xyz[flat] - xyz[points][row]) ** 2, axis=1)
+    flat = flat[np.lexsort((flat, d2, row))]  # by row, then distance, then index
+    first = np.searchsorted(row, np.arange(len(points)))  # row is sorted
+    return flat[first[:, None] + np.arange(k)]
+
+
+def ball_candidates(tree: cKDTree, xyz: np.ndarray, points: np.ndarray, radius: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Every point within ``radius`` (m,) of each of ``points`` (m,) (a hair further, so that
+    the points at exactly that distance are in), in one ball query: (row, index) pairs as
+    flat int64 arrays, grouped by row in order. Where a k-d tree broke ties at the k-th
+    neighbour in its own order, these are what ties are broken again from."""
     near = tree.query_ball_point(xyz[points], radius * (1 + 1e-9), workers=-1)
     sizes = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
     flat = np.concatenate(near).astype(np.int64)
-    row = np.repeat(np.arange(len(points)), sizes)
-    d2 = np.sum((xyz[flat] - xyz[points][row]) ** 2, axis=1)
-    flat = flat[np.lexsort((flat, d2, row))]  # by row, then distance, then index
-    first = np.cumsum(sizes) - sizes
-    return flat[first[:, None] + np.arange(k)]
+    return np.repeat(np.arange(len(points)), sizes), flat
 
 
 @njit(cache=True, parallel=True)

@@ -1,7 +1,9 @@
-"""Statistics helpers shared by the detectors: critical values and a robust scale estimate."""
+"""Statistics helpers shared by the detectors: critical values, a robust scale estimate and the
+noise of coordinate rounding."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from statistics import NormalDist
 
@@ -75,3 +77,12 @@ def mad_sigma(x: np.ndarray) -> float:
         return float("nan")
     deviation = np.abs(values - np.median(values, overwrite_input=True))
     return float(MAD_TO_SIGMA * np.median(deviation, overwrite_input=True))
+
+
+def rounding_sigma(scales: np.ndarray | None) -> np.ndarray:
+    """(3,) standard deviation of coordinates rounded to the LAS ``scales`` (uniform rounding
+    error: scale / sqrt(12)); zeros when not known. No estimate of the noise can be smaller:
+    below it, a noise-free surface's rounding alone would be flagged."""
+    if scales is None:
+        return np.zeros(3)
+    return np.abs(np.asarray(scales, dtype=np.float64)) / math.sqrt(12.0)

@@ -140,11 +140,10 @@ def _tied_neighbours(tree, xyz: np.ndarray, points: np.ndarray, d: np.ndarray, k
     k-th, and whether each is within ``radius``: by distance, then index (the order in which
     the whole cloud and a tile hold them alike). ``d`` (m, kq): the tree's distances of each
     (its largest finite one reaches past the tie). One ball query and one sort for all."""
+    from algorithms.neighbours import ball_candidates
+
     far = np.max(np.where(np.isfinite(d), d, -np.inf), axis=1)
-    near_lists = tree.query_ball_point(xyz[points], far * (1 + 1e-9), workers=-1)
-    sizes = np.fromiter((len(c) for c in near_lists), dtype=np.int64, count=len(near_lists))
-    cand = np.concatenate(near_lists).astype(np.int64)
-    row = np.repeat(np.arange(len(points)), sizes)
+    row, cand = ball_candidates(tree, xyz, points, far)
     other = cand != points[row]
     cand, row = cand[other], row[other]
     dist = np.sqrt(np.sum((xyz[cand] - xyz[points[row]]) ** 2, axis=1))

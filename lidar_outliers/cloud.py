@@ -122,7 +122,7 @@ class Cloud:
     def rounding_sigma(self) -> np.ndarray:
         """(3,) the standard deviation of the coordinates' rounding to ``scales`` (zeros when
         not known): the least noise any estimate may give."""
-        from algorithms.temporal.batch import rounding_sigma
+        from algorithms.stats import rounding_sigma
 
         return rounding_sigma(self.scales)
 

@@ -35,12 +35,12 @@ from typing import Any
 import laspy
 import numpy as np
 
+from algorithms.stats import rounding_sigma
 from algorithms.temporal import TemporalParameters, TemporalStream
 from algorithms.temporal.batch import (
     SIGMA_SAMPLE_POINTS,
     estimate_sigma,
     result_info,
-    rounding_sigma,
     scores_from_differences,
 )
 from algorithms.temporal.parameters import check_params

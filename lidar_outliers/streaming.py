@@ -15,8 +15,8 @@ from typing import Any
 import laspy
 import numpy as np
 
+from algorithms.stats import rounding_sigma
 from algorithms.temporal import TemporalStream
-from algorithms.temporal.batch import rounding_sigma
 from lidar_outliers import lasio
 from lidar_outliers.detectors import get_detector
 from lidar_outliers.lasio import LasFacts

@@ -110,7 +110,7 @@ def unit_differences(s: SortedPoints, p: ResolvedParameters) -> tuple[np.ndarray
 def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray,
                    floor: float | np.ndarray = 0.0) -> tuple[np.ndarray, str]:
     """Robust per-axis sigma from unit-sigma prediction differences, never below ``floor``
-    (metres, one or per axis: the coordinates' rounding, :func:`rounding_sigma`).
+    (metres, one or per axis: the coordinates' rounding, :func:`algorithms.stats.rounding_sigma`).
 
     With one sigma per axis, eq. 17 is dz / (sigma * sigma_dz(unit)), so r = dz / sigma_dz(unit)
     has standard deviation sigma under H0; its MAD-based sigma ignores the outliers.
@@ -138,15 +138,6 @@ def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray,
     if np.any(sigma < floor):
         sigma, source = np.maximum(sigma, floor), f"{source}, raised to the coordinates' rounding"
     return sigma, source
-
-
-def rounding_sigma(scales: np.ndarray | None) -> np.ndarray:
-    """(3,) standard deviation of coordinates rounded to the LAS ``scales`` (uniform rounding
-    error: scale / sqrt(12)); zeros when not known. No estimate of the noise can be smaller:
-    below it, a noise-free surface's rounding alone would be flagged."""
-    if scales is None:
-        return np.zeros(3)
-    return np.abs(np.asarray(scales, dtype=np.float64)) / math.sqrt(12.0)
 
 
 def scores_from_differences(
@@ -192,7 +183,7 @@ def detect_temporal(
     max_gap : seconds; a time step above it starts a new segment. "auto": 5 x the group's median
         positive time step.
     sigma_floor : metres, one or per axis: the least "auto" sigma (the coordinates' rounding,
-        :func:`rounding_sigma`).
+        :func:`algorithms.stats.rounding_sigma`).
 
     Returns
     -------
