@@ -305,11 +305,16 @@ class JobService:
 
     def _forget(self, job: Job) -> None:
         """A recorded job whose input went away before it was stored: no trace of it."""
-        try:
-            self.storage.delete_prefix(layout.job_prefix(job.id))
-        except StorageError:
-            log.exception("could not remove the files of job %s", job.id)
+        self._delete_files(job.id)
         self.store.delete_job(job.id)
+
+    def _delete_files(self, job_id: str) -> None:
+        """Delete a job's files; a storage that fails is logged (retention removes them
+        later)."""
+        try:
+            self.storage.delete_prefix(layout.job_prefix(job_id))
+        except StorageError:
+            log.exception("could not remove the files of job %s", job_id)
 
     def _abandon(self, job: Job, exc: Exception) -> None:
         """A recorded job that could not be stored or queued: failed, its bytes released."""
@@ -317,10 +322,7 @@ class JobService:
         what = "store the input" if stored else "queue the job"
         self.store.transition(job.id, JobStatus.failed, f"could not {what}: {exc}",
                               stored_bytes=0)
-        try:
-            self.storage.delete_prefix(layout.job_prefix(job.id))
-        except StorageError:
-            log.exception("could not remove the files of job %s", job.id)
+        self._delete_files(job.id)
 
     def poll(self, authorization: str | None, job_id: str) -> Job:
         """The caller's job ``job_id`` by key, in one database query (401, 404 otherwise)."""
@@ -347,10 +349,7 @@ class JobService:
         if job.status is not JobStatus.dismissed:
             job = self.store.transition(job_id, JobStatus.dismissed, "dismissed by the user",
                                         stored_bytes=0) or self.get(user, job_id)
-        try:
-            self.storage.delete_prefix(layout.job_prefix(job_id))
-        except StorageError:  # retention removes them later
-            log.exception("could not remove the files of job %s", job_id)
+        self._delete_files(job_id)
         return job
 
     def result(self, user: User, job_id: str, name: str) -> tuple[Job, str, ObjectInfo]:
