@@ -86,20 +86,21 @@ def leading_streamed(stages: list[StageModel]) -> int:
 def run_streamed(
     in_path: Path, stages: list[StageModel], points: int, folder: Path, *,
     chunk_points: int = lasio.DEFAULT_CHUNK_POINTS, progress: Progress | None = None,
-    progress_at: float = 0.1,
+    progress_at: float = 0.1, scales: np.ndarray | None = None,
 ) -> Streamed:
     """Run ``stages`` (each declared ``streams``) over ``in_path``, one after the other, each
     on the points the stages before it left; their arrays go to ``folder``.
 
     ``progress(progress_at, message)`` is called for every chunk of every pass (the service
-    cancels a job through it)."""
+    cancels a job through it). ``scales``: the file's coordinate resolution (the header's),
+    below whose rounding no ``sigma: auto`` goes."""
     started = time.perf_counter()
     folder.mkdir(parents=True, exist_ok=True)
     # a new file of zeros ("w+" truncates)
     flags = np.lib.format.open_memmap(folder / "flags.npy", mode="w+", dtype=FLAGS_DTYPE,
                                       shape=(points,))
     out = Streamed(flags, {})
-    floor = rounding_sigma(lasio.inspect_las(in_path).scales)
+    floor = rounding_sigma(scales)
     for k, stage in enumerate(stages):
         spec = get_detector(stage.detector)
         assert spec.streams and spec.flag_bit is not None

@@ -938,7 +938,8 @@ def process_tiled(
             return f"{stages[0].detector} needs gps_time, which this file does not have"
         t_cut = time.perf_counter()
         first = run_streamed(in_path, stages[:lead], tiles.points, work / "streamed",
-                             chunk_points=chunk_points, progress=progress) if lead else None
+                             chunk_points=chunk_points, progress=progress,
+                             scales=tiles.scales) if lead else None
         streamed_seconds = 0.0 if first is None else first.seconds
         dropped = None if first is None else dropped_points(first.flags)
         done, rest = stages[:lead], stages[lead:]  # run over the whole file / still to run

@@ -111,7 +111,7 @@ def split_job(
     lead = leading_streamed(stages)
     if isinstance(stage_halos(stages[lead:]), str) or (lead and not tiles.has_gps_time):
         return None
-    streamed = _stream_leading(storage, job_id, source, stages[:lead], tiles.points,
+    streamed = _stream_leading(storage, job_id, source, stages[:lead], tiles,
                                scratch / "streamed", progress) if lead else []
     for cell in tiles.cells:
         storage.put_file(layout.tile_key(job_id, cell_name(cell)), tiles.cell_path(cell),
@@ -125,11 +125,12 @@ def split_job(
     return sorted(tiles.cells)
 
 
-def _stream_leading(storage: Storage, job_id: str, source: Path, stages: list, points: int,
+def _stream_leading(storage: Storage, job_id: str, source: Path, stages: list, tiles: TileSet,
                     folder: Path, progress: Progress) -> list[dict[str, Any]]:
     """Stream the leading time-series stages over the input and put their arrays into the
     job's storage; their statistics (``info``, critical value) for the manifest."""
-    first = run_streamed(source, stages, points, folder, progress=progress, progress_at=0.05)
+    first = run_streamed(source, stages, tiles.points, folder, progress=progress,
+                         progress_at=0.05, scales=tiles.scales)
     np.save(folder / "dropped.npy", dropped_points(first.flags))
     names = [f"{STREAMED}{name}.npy" for name in ("flags", "dropped",
                                                    *(f"score_{s}" for s in first.scores))]

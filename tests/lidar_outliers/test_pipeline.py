@@ -399,6 +399,19 @@ def test_auto_sigma_never_goes_below_the_coordinates_rounding(tmp_path, streamin
     assert info["sigma"] >= rounding * (1 - 1e-12) and stats["stages"][0]["points_flagged"] == 0
 
 
+def test_sigma_floor_of_temporal_streamed_before_tiles_equals_whole(tmp_path):
+    src = _noise_free_file(tmp_path)
+    pipeline = {"pipeline": [{"detector": "temporal"}, {"detector": "height_field", "low": False}]}
+    whole = process_file(src, tmp_path / "whole.las", pipeline)
+    tiled = process_file(src, tmp_path / "tiled.las", pipeline, tile_size=15.0)
+    assert tiled["mode"] == "tiled"
+    a, b = whole["stages"][0]["info"], tiled["stages"][0]["info"]
+    assert a["sigma"] == b["sigma"] and min(a["sigma"].values()) >= 0.001 / np.sqrt(12.0) * (
+        1 - 1e-12)
+    assert b["sigma_source"].endswith("raised to the coordinates' rounding")
+    assert whole["overall"] == tiled["overall"]
+
+
 def test_height_field_sigma_floor_holds_estimated_and_given_sigma():
     from algorithms.height_field import detect_height_field
 
