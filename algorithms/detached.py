@@ -939,13 +939,20 @@ def reach_through(local: np.ndarray, points: np.ndarray, radius: np.ndarray,
                    reach: np.ndarray) -> np.ndarray:
     """(m,) for each of ``points``, the largest of ``radius`` and |q - p| + reach(q) over the
     points q within ``radius`` (XY) whose own reach is not 0: what depending on everything
-    that near reaches."""
+    that near reaches. (A hair further than ``radius`` counts too: a bound, never less.)"""
     from scipy.spatial import cKDTree
+
+    from algorithms.neighbours import ball_candidates
 
     out = radius.astype(np.float64).copy()
     uncertain = np.flatnonzero(reach > 0)
-    if uncertain.size == 0:
+    if uncertain.size == 0 or points.size == 0:
         return out
+    xy = local[:, :2]
+    row, near = ball_candidates(cKDTree(xy[uncertain]), xy, points, radius)
+    q = uncertain[near]
+    np.maximum.at(out, row, np.hypot(*(xy[q] - xy[points[row]]).T) + reach[q])
+    return out
     xy = local[uncertain, :2]
     near = cKDTree(xy).query_ball_point(local[points, :2], radius)
     for i, found in enumerate(near):

@@ -235,16 +235,21 @@ def floor_cells(local: np.ndarray, index: np.ndarray, cell: float,
 
 
 def low_scores(local: np.ndarray, sigma: float, spacing_xy: float | str = "auto",
-               voxel: float | str = "auto") -> tuple[np.ndarray, dict]:
+               voxel: float | str = "auto", sample: np.ndarray | None = None
+               ) -> tuple[np.ndarray, dict]:
     """(n,) how many sigmas each point of a small piece lies under the ground-like floor around
     it (step 6 of the module docstring; NaN where untested) and the info. ``local``: the
     points relative to the corner of the voxel and cell grids; ``spacing_xy``, ``voxel``:
-    given, or "auto" to measure them here (:func:`algorithms.detached.xy_spacing`,
+    given, or "auto" to measure them here (:func:`sample_spacing` of the points ``sample``
+    when given, else :func:`algorithms.detached.xy_spacing`,
     :func:`algorithms.detached.surface_scale`)."""
     from algorithms.detached import floor_scores, small_pieces, voxel_size, xy_spacing
 
     score = np.full(len(local), np.nan)
-    horizontal = xy_spacing(local) if spacing_xy == "auto" else float(spacing_xy)
+    if spacing_xy != "auto":
+        horizontal = float(spacing_xy)
+    else:
+        horizontal = xy_spacing(local) if sample is None else sample_spacing(local, sample)
     size = voxel_size(local, LOW_PIECE_POINTS, horizontal, voxel)
     if size is None:
         return score, {"voxel": None, "points_tested": 0}
@@ -257,6 +262,26 @@ def low_scores(local: np.ndarray, sigma: float, spacing_xy: float | str = "auto"
                          max_slope=LOW_MAX_SLOPE)
     return score, {"voxel": float(size), "points_tested": int(np.isfinite(score).sum())}
 
+
+
+def sample_spacing(local: np.ndarray, sample: np.ndarray) -> float:
+    """The low test's horizontal spacing measured on the points of the mask ``sample``
+    (:func:`sigma_sample`: by position in the file, so a run tile by tile computes only their
+    distances in its round over the file): :func:`spacing_of_values` of their XY distances to
+    the k-th nearest other point of ``local``."""
+    from algorithms.detached import xy_kth_distance
+
+    return spacing_of_values([xy_kth_distance(local, wanted=sample)])
+
+
+def spacing_of_values(parts: Iterable[np.ndarray]) -> float:
+    """sqrt(pi / k) x the strided median of the points' XY distances to their k-th nearest
+    other point, given in file order as ``parts`` (NaN: not in the sample), as
+    :func:`algorithms.detached.xy_spacing` measures a whole cloud; 0.0 without any."""
+    from algorithms.detached import XY_SPACING_K, strided_median
+
+    value = strided_median(parts) * float(np.sqrt(np.pi / XY_SPACING_K))
+    return value if np.isfinite(value) else 0.0
 
 def detect_height_field(
     xyz: np.ndarray,
@@ -295,8 +320,9 @@ def detect_height_field(
         point in the same voxels and give it the same neighbours.
     wanted : (n,) bool, the points whose scores are read (default all; a tile's core): the
         patches of the others are not fitted (NaN), and ``sigma="auto"`` comes from these.
-    sample : (n,) bool, the points whose full-patch residuals ``sigma="auto"`` is estimated
-        from (default all; :func:`sigma_sample` draws them from a file).
+    sample : (n,) bool, the points whose full-patch residuals ``sigma="auto"`` and whose XY
+        spacing ``spacing_xy="auto"`` are estimated from (default all, and for the spacing a
+        regular subsample; :func:`sigma_sample` draws them from a file).
     sigma_floor : metres, the least sigma used, estimated or given (the coordinates' rounding:
         below it a noise-free surface's rounding alone would be flagged; a run tile by tile
         pins an estimate first and floors it as the whole run does).
@@ -357,7 +383,7 @@ def detect_height_field(
     info["points_static_above_threshold"] = int(np.count_nonzero(static & (score > threshold)))
     score[static & (score > threshold)] = threshold  # seen again: not an outlier above
     if low:
-        under, info["low_test"] = low_scores(grid_local, sig, spacing_xy, voxel)
+        under, info["low_test"] = low_scores(grid_local, sig, spacing_xy, voxel, sample)
         info["low_test"]["points_flagged"] = int(np.count_nonzero(under > threshold))
         score = np.fmax(score, under)  # either test where the other did not apply
     flagged = score > threshold
@@ -416,12 +442,11 @@ def pin_low_estimate(params: HeightFieldParameters,
     from every point's value, as the whole cloud's run measures it, and the note on it."""
     from dataclasses import replace
 
-    from algorithms.detached import XY_SPACING_K, scale_of_ladder, strided_median
+    from algorithms.detached import scale_of_ladder
 
     name = pending_estimate(params)
     if name == "spacing_xy":
-        value = strided_median(parts) * float(np.sqrt(np.pi / XY_SPACING_K))
-        return replace(params, spacing_xy=value if np.isfinite(value) else 0.0), {}
+        return replace(params, spacing_xy=spacing_of_values(parts)), {}
     if name == "voxel":
         value = scale_of_ladder(parts, LOW_PIECE_POINTS, float(params.spacing_xy))
         return replace(params, voxel=value), {}

@@ -39,7 +39,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -371,13 +371,18 @@ def run_tile(
     tiles: TileSet, cell: tuple[int, int], params: PipelineParams, stages: list[StageModel],
     trajectory: np.ndarray | None = None, values_of: int | None = None,
     prepass_of: int | None = None, dropped: np.ndarray | None = None, settle: bool = False,
+    start: Sequence[float] | None = None,
 ) -> dict[str, Any]:
     """The pipeline's result for the points of ``cell``: the whole cloud's result for them.
 
     Returns ``index`` (the points' indices in the file), ``flags``, ``score_<name>`` per outlier
-    stage, ``classification`` (with ``classify``), ``halo`` (metres used) and per stage its
-    detector ``info`` and critical value (``stages``, JSON). ``trajectory``: (m, 4) in file
-    coordinates.
+    stage, ``classification`` (with ``classify``), ``halo`` (metres used), ``halos`` and
+    ``halos_needed`` (each stage's, used and what its reach needed, :func:`reach_needed`) and
+    per stage its detector ``info`` and critical value (``stages``, JSON).
+    ``trajectory``: (m, 4) in file coordinates.
+
+    ``start``: halos to start from where wider than the declared ones (:class:`HaloMemo`); the
+    result does not depend on them, only the work of growing the halos to the reach.
 
     ``values_of=i``: instead, the values stage i estimates a parameter from
     (:class:`~lidar_outliers.detectors.base.Estimate`) for the points of the cell: ``index``
@@ -409,6 +414,8 @@ def run_tile(
         assert prepass is not None
         stages = stages[:prepass_of + 1]
         halos = [*halos[:prepass_of], float(prepass.halo(stages[-1].parameters()))]
+    if start is not None and len(start) == len(halos):
+        halos = [max(h, float(s)) for h, s in zip(halos, start, strict=True)]
     run = stages if values_of is None and prepass_of is None else stages[:-1]
     _check_prepared(tiles, run)
     tile_params = params.model_copy(update={"pipeline": run or None, "reference_classes": None})
@@ -424,7 +431,9 @@ def run_tile(
         result = run_pipeline(cloud, tile_params) if run and not reach_first else None
         flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
         outside = outside_distance(cloud.xyz[:, :2], tiles, cell)
-        wider = None if everything else _reach_violations(cloud, stages, halos, flags, outside)
+        needed = [-math.inf] * len(halos) if everything else reach_needed(
+            cloud, stages, halos, flags, outside)
+        wider = wider_halos(halos, needed)
         if wider is None:
             break
         halos = wider
@@ -433,9 +442,10 @@ def run_tile(
         result = run_pipeline(replace(cloud, wanted=core), tile_params)
     if values_of is None and prepass_of is None:
         assert result is not None
-        return _core_result(rec, core, result, halos)
-    out = _core_result(rec, core, result, halos) if settle and result is not None else {
-        "index": rec["index"][core], "halo": np.float64(sum(halos))}
+        return _core_result(rec, core, result, halos, needed)
+    out = _core_result(rec, core, result, halos, needed) if settle and result is not None else {
+        "index": rec["index"][core], "halo": np.float64(sum(halos)),
+        **_halo_entries(halos, needed)}
     # the values of the core's points read no further than the last stage's halo (its reach
     # was checked): the earlier stages' wider halos are not computed on again
     use = (flags == 0) & (outside <= halos[-1])
@@ -448,11 +458,39 @@ def run_tile(
     return out
 
 
-def _core_result(rec: np.ndarray, core: np.ndarray, result: Any, halos: list[float]
-                 ) -> dict[str, Any]:
+def _halo_entries(halos: list[float], needed: list[float]) -> dict[str, np.ndarray]:
+    return {"halos": np.asarray(halos, dtype=np.float64),
+            "halos_needed": np.asarray(needed, dtype=np.float64)}
+
+
+class HaloMemo:
+    """Halos for the next tile of a round to start from (``run_tile``'s ``start``): the widest
+    that the tiles before it needed, with a margin, each at most what its tile used (a reach
+    bounded by the halo it fits in reports that halo, which must not ratchet up). Tiles of one
+    survey reach about as far, so a tile is mostly loaded and checked once instead of grown
+    from the declared halos again; a region a little wider than it needs costs less than a
+    second region."""
+
+    MARGIN = 1.1
+
+    def __init__(self) -> None:
+        self.halos: list[float] | None = None
+
+    def seen(self, result: dict[str, Any]) -> dict[str, Any]:
+        """Note what the result's reach needed; return the result."""
+        if "halos_needed" in result:
+            wanted = [min(self.MARGIN * float(n), float(h)) if math.isfinite(n) else 0.0
+                      for n, h in zip(result["halos_needed"], result["halos"], strict=True)]
+            self.halos = wanted if self.halos is None else [
+                max(a, b) for a, b in zip(self.halos, wanted, strict=True)]
+        return result
+
+
+def _core_result(rec: np.ndarray, core: np.ndarray, result: Any, halos: list[float],
+                 needed: list[float]) -> dict[str, Any]:
     """The pipeline's result for a tile's core points: flags, scores, classes, statistics."""
     out: dict[str, Any] = {"index": rec["index"][core], "flags": result.flags[core],
-                           "halo": np.float64(sum(halos))}
+                           "halo": np.float64(sum(halos)), **_halo_entries(halos, needed)}
     for name, score in result.scores.items():
         out[f"score_{name}"] = score[core]
     if result.classification is not None:
@@ -686,11 +724,13 @@ def pin_stage(
     return spec.stage(**pinned.as_dict()), info
 
 
-def _reach_violations(
+def reach_needed(
     cloud: Cloud, stages: list[StageModel], halos: list[float], flags: np.ndarray,
     outside: np.ndarray,
-) -> list[float] | None:
-    """Wider halos when a stage's points that later stages rely on reached beyond the region.
+) -> list[float]:
+    """Each stage's halo that its points that later stages rely on need in this region (-inf
+    for a stage whose reach is not checked or with no such point; inf when a point needs more
+    than the points at hand).
 
     Stage i must be exact within the halos of the stages after it (``outside``: each point's
     signed distance to the core, :func:`outside_distance`). The stages before it are exact
@@ -698,8 +738,7 @@ def _reach_violations(
     distance inside the core and the halo ``halos[i]`` both count.
     """
     earlier = FLAGS_DTYPE(0)
-    wider = list(halos)
-    grew = False
+    needed = [-math.inf] * len(stages)
     for i, stage in enumerate(stages):
         spec = get_detector(stage.detector)
         stage_in = (flags & earlier) == 0
@@ -707,19 +746,26 @@ def _reach_violations(
             earlier |= FLAGS_DTYPE(spec.flag_bit)
         if spec.reach is None:
             continue
-        needed = outside <= sum(halos[i + 1:])
+        relied_on = outside <= sum(halos[i + 1:])
         index = np.flatnonzero(stage_in)
         if index.size == 0:
             continue
         allowed = sum(halos[i:]) - outside[index]
-        used = spec.reach(cloud.subset(index), stage.parameters(), needed[index], allowed)
-        short = (used - allowed)[needed[index]]
-        worst = float(short.max()) if short.size else -math.inf
-        if worst > 0:
-            wider[i] = (max(halos[i] * HALO_GROWTH, (halos[i] + worst) * 1.01)
-                        if math.isfinite(worst) else unbounded_growth(halos[i]))
-            grew = True
-    return wider if grew else None
+        used = spec.reach(cloud.subset(index), stage.parameters(), relied_on[index], allowed)
+        short = (used - allowed)[relied_on[index]]
+        if short.size:
+            needed[i] = halos[i] + float(short.max())
+    return needed
+
+
+def wider_halos(halos: list[float], needed: list[float]) -> list[float] | None:
+    """The halos to run a region again with when a stage needs more than its halo (each such
+    one grows at least :data:`HALO_GROWTH` times), None when every stage's fits."""
+    if not any(n > h for n, h in zip(needed, halos, strict=True)):
+        return None
+    return [h if not n > h else
+            max(h * HALO_GROWTH, n * 1.01) if math.isfinite(n) else unbounded_growth(h)
+            for h, n in zip(halos, needed, strict=True)]
 
 
 def unbounded_growth(halo: float) -> float:
@@ -947,9 +993,11 @@ def process_tiled(
         while (i := next_whole_file_step(rest, tiles.prepared)) is not None:
             settle = settles(rest, i)
             prepass = pending_prepass(rest, tiles.prepared) == i
+            memo = HaloMemo()
             values: Iterable[dict[str, Any]] = (
-                run_tile(tiles, cell, params, rest, trajectory, dropped=dropped, settle=settle,
-                         **{"prepass_of" if prepass else "values_of": i})
+                memo.seen(run_tile(tiles, cell, params, rest, trajectory, dropped=dropped,
+                                   settle=settle, start=memo.halos,
+                                   **{"prepass_of" if prepass else "values_of": i}))
                 for cell in sorted(tiles.cells))
             settler = (Settler(first, rest[:i], tiles.points, work / f"settled_{len(done)}")
                        if settle else None)
@@ -966,10 +1014,11 @@ def process_tiled(
                 dropped = dropped_points(first.flags)
                 done, rest = [*done, *rest[:i]], rest[i:]
         stages = [*done, *rest]
-        results = []
+        results, memo = [], HaloMemo()
         for k, cell in enumerate(sorted(tiles.cells)):
             path = work / "results" / result_name(cell)
-            save_result(path, run_tile(tiles, cell, params, rest, trajectory, dropped=dropped))
+            save_result(path, memo.seen(run_tile(tiles, cell, params, rest, trajectory,
+                                                 dropped=dropped, start=memo.halos)))
             results.append(path)
             if progress is not None:
                 progress(0.1 + 0.75 * (k + 1) / len(tiles.cells),

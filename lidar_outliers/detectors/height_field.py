@@ -31,8 +31,8 @@ def run(cloud: Cloud, params: HeightFieldParameters) -> DetectorResult:
 
 
 def sigma_points(cloud: Cloud) -> np.ndarray:
-    """(n,) bool: the points of the file ``sigma: auto`` is estimated from
-    (:func:`algorithms.height_field.sigma_sample`, by their position in the file)."""
+    """(n,) bool: the points of the file ``sigma: auto`` and ``spacing_xy: auto`` are
+    estimated from (:func:`algorithms.height_field.sigma_sample`, by position in the file)."""
     from algorithms.height_field import sigma_sample
 
     return sigma_sample(cloud.positions(), cloud.points_in_file())
@@ -45,7 +45,7 @@ def reach(cloud: Cloud, params: HeightFieldParameters, where: np.ndarray,
     if pending_estimate(params) == "voxel":
         return np.where(where, LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[1],
                         0.0)
-    if pending_estimate(params) == "sigma":  # only the sample's residuals are computed
+    if pending_estimate(params) in ("sigma", "spacing_xy"):  # only the sample's are computed
         where = where & sigma_points(cloud)
     return tile_reach(cloud.xyz, params, where, grid_origin(cloud), allowed)
 
@@ -56,7 +56,7 @@ def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
     if pending_estimate(params) == "voxel":
         return LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
     wanted = cloud.wanted
-    if pending_estimate(params) == "sigma":  # the residuals of the sample alone
+    if pending_estimate(params) in ("sigma", "spacing_xy"):  # the sample's values alone
         sample = sigma_points(cloud)
         wanted = sample if wanted is None else wanted & sample
     return estimate_values(cloud.xyz, params, grid_origin(cloud), wanted)

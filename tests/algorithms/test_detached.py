@@ -19,6 +19,7 @@ from algorithms.detached import (
     nearest_distance,
     nearest_first,
     pit_scores,
+    reach_through,
     scale_of_ladder,
     small_clusters,
     small_ladder,
@@ -191,6 +192,23 @@ def test_voxel_pieces_match_breadth_first_search():
     for size in (0.7, 1.5, 4.0):
         assert same_partition(voxel_pieces(xyz, size), slow_pieces(xyz, size))
     assert voxel_pieces(np.zeros((0, 3)), 1.0).shape == (0,)
+
+
+def test_reach_through_matches_every_pair():
+    rng = np.random.default_rng(5)
+    local = rng.uniform(0, 10, (400, 3))
+    reach = np.where(rng.random(400) < 0.3, rng.uniform(0.1, 2.0, 400), 0.0)
+    points = rng.choice(400, 60, replace=False)
+    radius = rng.uniform(0.2, 3.0, 60)
+    expected = radius.copy()
+    for i, p in enumerate(points):
+        for q in np.flatnonzero(reach > 0):
+            d = float(np.hypot(*(local[q, :2] - local[p, :2])))
+            if d <= radius[i]:
+                expected[i] = max(expected[i], d + reach[q])
+    assert np.allclose(reach_through(local, points, radius, reach), expected, rtol=0, atol=1e-12)
+    assert reach_through(local, points[:0], radius[:0], reach).shape == (0,)
+    assert np.array_equal(reach_through(local, points, radius, np.zeros(400)), radius)
 
 
 def slow_ladder(local: np.ndarray, piece_points: int, start: float):

@@ -211,19 +211,35 @@ def test_balanced_buckets_share_every_section_once_by_size():
     assert many[0].tolist() == [0, 1, 2, 3]
 
 
-def test_a_first_fit_that_wanders_starts_again_from_the_best_plane():
-    """A real street section (road, walls, a vehicle) whose algebraic start does not converge
-    within the detector's adjustments: the first fit starts again from the best plane, and
-    every point is tested."""
+def street_section() -> np.ndarray:
+    """A real street section (road, walls, a vehicle), 31,247 points."""
     from pathlib import Path
 
     data = Path(__file__).resolve().parents[1] / "data" / "sections" / "street_section.npz"
-    xyz = np.load(data)["xyz_mm"] * 0.001
+    return np.load(data)["xyz_mm"] * 0.001
+
+
+def test_a_street_section_is_tested_whole():
+    """Its algebraic start wanders on some CPUs and converges on others (the iterations differ
+    in the last bits with the instructions numba compiles to): either way every point is
+    tested."""
+    xyz = street_section()
     res = detect_section(xyz, section_size=100.0)  # one section
     assert res.info["sections"] == 1
-    assert res.info["sections_started_from_plane"] == 1
+    assert res.info["sections_started_from_plane"] in (0, 1)
     assert sum(res.info["points_untested"].values()) == 0
     assert 0 < res.flagged.sum() < 0.05 * len(xyz)
+
+
+def test_a_first_fit_that_does_not_converge_starts_again_from_the_best_plane(monkeypatch):
+    """With too few adjustments for any start to converge, the first fit starts again from
+    the best plane (reported), and the section's points are reported untested."""
+    import algorithms.section
+
+    monkeypatch.setattr(algorithms.section, "FIT_MAX_ITER", 2)
+    res = detect_section(street_section(), section_size=100.0)
+    assert res.info["sections_started_from_plane"] == 1
+    assert sum(res.info["points_untested"].values()) == len(res.flagged)
 
 
 def test_the_best_plane_is_the_quadric_across_the_least_spread():

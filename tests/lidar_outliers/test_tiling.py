@@ -15,13 +15,16 @@ from lidar_outliers.detectors import DETECTORS
 from lidar_outliers.lasio import inspect_las
 from lidar_outliers.params import PipelineParams
 from lidar_outliers.tiling import (
+    HALO_GROWTH,
     POINT_DTYPE,
+    HaloMemo,
     TileError,
     cell_name,
     load_region,
     outside_distance,
     partition,
     run_tile,
+    wider_halos,
 )
 from tests.lasfiles import (
     STREET_TRANSIENT,
@@ -350,6 +353,42 @@ def test_narrow_halo_is_widened_until_every_patch_is_the_whole_clouds(scene, tmp
     process_file(scene, whole, params)
     score = np.asarray(_results(whole)["patch_score"])[out["index"]]
     np.testing.assert_allclose(out["score_patch"], score, rtol=1e-5, atol=1e-5)
+
+
+def test_a_tile_started_from_wider_halos_gives_the_same_result(scene, tmp_path):
+    """The halos a tile starts from change the work, never the result: started from what the
+    tile before needed, as a round over the file does (:class:`HaloMemo`)."""
+    params = PipelineParams.model_validate({"pipeline": [{"detector": "patch", "k": 200}]})
+    tiles = partition(scene, tmp_path / "cells", TILE)
+    cell = max(tiles.cells, key=tiles.cells.get)
+    first = run_tile(tiles, cell, params, list(params.pipeline))
+    memo = HaloMemo()
+    memo.seen(first)
+    assert memo.halos is not None and memo.halos[0] > 2.0
+    again = run_tile(tiles, cell, params, list(params.pipeline), start=memo.halos)
+    assert again["halo"] <= first["halo"]  # what it needed, with a margin: not grown twice
+    np.testing.assert_array_equal(again["index"], first["index"])
+    np.testing.assert_array_equal(again["flags"], first["flags"])
+    np.testing.assert_array_equal(again["score_patch"], first["score_patch"])
+
+
+def test_halo_memo_keeps_the_widest_need_and_never_more_than_a_tile_used():
+    memo = HaloMemo()
+    memo.seen({"halos": np.array([2.0, 8.0]), "halos_needed": np.array([-math.inf, 5.0])})
+    assert memo.halos == [0.0, 5.5]
+    # a reach bounded by its halo reports the halo: the memo does not grow from it
+    memo.seen({"halos": np.array([2.0, 5.5]), "halos_needed": np.array([1.0, 5.5])})
+    assert memo.halos == [1.1, 5.5]
+    memo.seen({"halos": np.array([2.0, 4.0]), "halos_needed": np.array([math.inf, 3.0])})
+    assert memo.halos == [1.1, 5.5]
+
+
+def test_halos_grow_where_a_stage_needs_more():
+    assert wider_halos([2.0, 3.0], [1.0, -math.inf]) is None
+    assert wider_halos([2.0, 3.0], [1.0, math.nan]) is None  # as before: nothing measured
+    assert wider_halos([2.0, 3.0], [2.5, 3.0]) == [2.0 * HALO_GROWTH, 3.0]
+    assert wider_halos([2.0, 3.0], [9.0, 1.0]) == [9.0 * 1.01, 3.0]
+    assert wider_halos([2.0, 3.0], [1.0, math.inf]) == [2.0, 3.0 * HALO_GROWTH]
 
 
 def test_partition_keeps_every_point_once_in_its_cell(scene, tmp_path):
