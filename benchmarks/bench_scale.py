@@ -2,8 +2,9 @@
 two worker processes; wall time, points per second, peak memory per process.
 
 The cloud is simulated cloud A (seed 0, about 0.9 M points; ``lidar-outliers simulate``) laid
-side by side in X (and later in time) as often as ``--points`` needs. That base cloud runs
-through the command line first: the ratio column compares each run with it.
+side by side in X (and later in time) as often as ``--points`` needs. The first
+``--base-points`` of such a file (default 1.2 M: the copy and the start of the next) run through
+the command line first, whole: the ratio column compares each run with that base cloud.
 
     .venv/bin/python benchmarks/bench_scale.py --points 50000000          # the real benchmark
     .venv/bin/python benchmarks/bench_scale.py --points 2500000 --workers 1 2
@@ -122,7 +123,7 @@ def anonymous_rss(pid: int) -> int:
     return 0
 
 
-def base_cloud(folder: Path) -> Path:
+def simulated_cloud(folder: Path) -> Path:
     """Simulated cloud A, seed 0, full scale (made once, kept in ``folder``)."""
     found = sorted(folder.glob("A_0*.las"))
     if not found:
@@ -157,6 +158,15 @@ def tiled_copy(base: Path, out: Path, points: int) -> int:
             written += take
             copy += 1
     return written
+
+
+def copies(simulated: Path, out: Path, points: int) -> Path:
+    """``out``: :func:`tiled_copy` of ``points`` points (made once, kept)."""
+    if not out.exists():
+        part = out.with_suffix(".part")
+        tiled_copy(simulated, part, points)
+        part.rename(out)
+    return out
 
 
 def run_cli(cloud: Path, out: Path, params: str | None, tile_size: float | None) -> dict:
@@ -257,6 +267,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, nargs="*", default=[1, 2],
                         help="service runs with this many worker processes (none: CLI only)")
     parser.add_argument("--params", help="pipeline JSON (default: the file's default pipeline)")
+    parser.add_argument("--base-points", type=int, default=1_200_000,
+                        help="points of the base cloud the times are compared with")
     parser.add_argument("--tile-size", type=float, help="tile edge in metres (default: auto)")
     parser.add_argument("--tile-job-points", type=int, default=2_000_000,
                         help="the service's TILE_JOB_POINTS")
@@ -266,13 +278,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     folder = args.folder or Path(tempfile.mkdtemp(prefix="bench-scale-"))
     folder.mkdir(parents=True, exist_ok=True)
-    base = base_cloud(folder / "base")
+    simulated = simulated_cloud(folder / "base")
+    base = copies(simulated, folder / f"base_{args.base_points}.las", args.base_points)
     base_points = laspy.open(base).header.point_count
-    big = folder / f"cloud_{args.points}.las"
-    if not big.exists():
-        part = big.with_suffix(".part")
-        tiled_copy(base, part, args.points)
-        part.rename(big)
+    big = copies(simulated, folder / f"cloud_{args.points}.las", args.points)
     print(f"cloud: {big} ({args.points:,} points, {big.stat().st_size / 1e6:,.0f} MB); "
           f"base {base_points:,} points; params {args.params or 'default pipeline'}")
     print("| run | points | seconds | points/s | cores busy | peak RSS GB (largest process) | "

@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,7 @@ from lidar_outliers.prepass import Streamed, leading_streamed, run_streamed
 from lidar_outliers.streaming import temporal_only
 from lidar_outliers.tiling import (
     MANIFEST,
+    HaloMemo,
     Settler,
     TileError,
     TileSet,
@@ -77,6 +79,11 @@ from lidar_outliers.tiling import (
 
 log = logging.getLogger(__name__)
 Cell = tuple[int, int]
+#: The halos this worker process's last tiles of a round needed, per (job, stage, round): the
+#: next tile of the round it takes starts from them. A few rounds only: memory does not grow
+#: with the jobs.
+_HALO_MEMOS: OrderedDict[tuple[str, int | None, int], HaloMemo] = OrderedDict()
+HALO_MEMOS_KEPT = 8
 #: Name prefix of the streamed stages' arrays among the job's tile files.
 STREAMED = "streamed_"
 
@@ -320,10 +327,12 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
             _streamed_array(storage, job_id, "dropped.npy", scratch / "streamed"))
         prepass = values_of is not None and pending_prepass(stages, tiles.prepared) == values_of
         own = None if values_of is None else values_of - lead  # among the tiled stages
-        result = run_tile(tiles, tuple(cell), params, stages[lead:],
-                          values_of=None if prepass else own,
-                          prepass_of=own if prepass else None, dropped=dropped,
-                          settle=own is not None and settles(stages[lead:], own))
+        memo = _halo_memo((job_id, values_of, current))
+        result = memo.seen(run_tile(tiles, tuple(cell), params, stages[lead:],
+                                    values_of=None if prepass else own,
+                                    prepass_of=own if prepass else None, dropped=dropped,
+                                    settle=own is not None and settles(stages[lead:], own),
+                                    start=memo.halos))
         path = scratch / (result_name(tuple(cell)) if values_of is None
                           else values_name(values_of, tuple(cell), current))
         save_result(path, result)
@@ -331,6 +340,15 @@ def run_job_tile(settings: Settings, store: Store, storage: Storage, job_id: str
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return True
+
+
+def _halo_memo(key: tuple[str, int | None, int]) -> HaloMemo:
+    """This process's :class:`HaloMemo` of a job's round (the latest few kept)."""
+    memo = _HALO_MEMOS.pop(key, None) or HaloMemo()
+    _HALO_MEMOS[key] = memo
+    while len(_HALO_MEMOS) > HALO_MEMOS_KEPT:
+        _HALO_MEMOS.popitem(last=False)
+    return memo
 
 
 def merge_job(settings: Settings, store: Store, storage: Storage, job_id: str) -> JobStatus | None:

@@ -54,3 +54,14 @@ def test_a_round_delivered_again_after_it_was_fixed_does_nothing(settings: Setti
     assert all(run_job_tile(settings, store, storage, job.id, c) for c in cells)
     stored = store.get_job(job.id)
     assert stored is not None and stored.status is JobStatus.running
+
+
+def test_a_worker_keeps_the_halos_of_its_latest_rounds_only() -> None:
+    from lidar_outliers.jobs import tiles
+
+    for job in range(3 * tiles.HALO_MEMOS_KEPT):
+        tiles._halo_memo((f"job-{job}", None, 0)).halos = [float(job)]
+    assert len(tiles._HALO_MEMOS) == tiles.HALO_MEMOS_KEPT
+    last = f"job-{3 * tiles.HALO_MEMOS_KEPT - 1}"
+    assert tiles._halo_memo((last, None, 0)).halos == [3.0 * tiles.HALO_MEMOS_KEPT - 1]
+    assert tiles._halo_memo(("job-0", None, 0)).halos is None  # forgotten: starts afresh
