@@ -416,19 +416,30 @@ def pending_estimate(params: HeightFieldParameters) -> str | None:
     return None
 
 
+def spacing_with_sigma(params: HeightFieldParameters) -> bool:
+    """Whether the round that estimates ``sigma`` also measures ``spacing_xy``: both are
+    "auto" and come from the same sample, and the XY distance to the 8th nearest other point
+    is at most the distance to the k-th (k >= 8) in 3-D, so the residuals' reach covers it."""
+    return pending_estimate(params) == "sigma" and params.low and params.spacing_xy == "auto"
+
+
 def estimate_values(xyz: np.ndarray, params: HeightFieldParameters,
                     origin: np.ndarray | None, wanted: np.ndarray | None = None) -> np.ndarray:
     """(n,) each point's value for the pending estimate: its full-patch residual
     (:func:`full_residuals`), its XY distance to its 8th neighbour
     (:func:`algorithms.detached.xy_kth_distance`) or its small-piece bits
     (:func:`algorithms.detached.small_ladder`); the first two only for the points of the mask
-    ``wanted`` when given (NaN elsewhere)."""
+    ``wanted`` when given (NaN elsewhere). (n, 2) residuals and XY distances when the round
+    measures both (:func:`spacing_with_sigma`)."""
     from algorithms.detached import ladder_pieces, relative, xy_kth_distance
 
     name = pending_estimate(params)
-    if name == "sigma":
-        return full_residuals(xyz, params.k, origin, wanted)
     local = relative(check_xyz(xyz), origin)
+    if name == "sigma":
+        residuals = full_residuals(xyz, params.k, origin, wanted)
+        if not spacing_with_sigma(params):
+            return residuals
+        return np.column_stack([residuals, xy_kth_distance(local, wanted=wanted)])
     if name == "spacing_xy":
         return xy_kth_distance(local, wanted=wanted)
     if name == "voxel":

@@ -338,9 +338,13 @@ def read_known(tiles: TileSet, detector: str, cell: tuple[int, int]) -> np.ndarr
                          known_dtype(detector))
 
 
-def region_known(tiles: TileSet, rec: np.ndarray) -> dict[str, np.ndarray] | None:
-    """The pre-pass facts of a region's points (``rec``), in its order, per detector."""
-    if not tiles.prepared or len(rec) == 0:
+def region_known(tiles: TileSet, rec: np.ndarray, detectors: Iterable[str]
+                 ) -> dict[str, np.ndarray] | None:
+    """The pre-pass facts of a region's points (``rec``), in its order, per detector of
+    ``detectors`` (those that run here) gathered so far."""
+    running = set(detectors)
+    wanted = [d for d in tiles.prepared if d in running]
+    if not wanted or len(rec) == 0:
         return None
     ij = cells_of(rec["xyz"][:, :2], tiles.anchor, tiles.tile_size)
     lo = ij.min(axis=0)
@@ -348,7 +352,7 @@ def region_known(tiles: TileSet, rec: np.ndarray) -> dict[str, np.ndarray] | Non
     keys = np.unique((ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1]))  # 1-D: fast to sort
     cells = [(int(lo[0] + key // span[1]), int(lo[1] + key % span[1])) for key in keys]
     known = {}
-    for detector in tiles.prepared:
+    for detector in wanted:
         parts = np.concatenate([read_known(tiles, detector, cell) for cell in cells])
         order = np.argsort(parts["index"], kind="stable")
         pos = order[np.minimum(np.searchsorted(parts["index"], rec["index"], sorter=order),
@@ -427,7 +431,7 @@ def run_tile(
         if dropped is not None:
             rec = rec[~_among(rec["index"], dropped)]
         cloud = tile_cloud(tiles, rec, local_traj)
-        cloud.known = region_known(tiles, rec)
+        cloud.known = region_known(tiles, rec, (s.detector for s in run))
         result = run_pipeline(cloud, tile_params) if run and not reach_first else None
         flags = result.flags if result else np.zeros(len(cloud), FLAGS_DTYPE)
         outside = outside_distance(cloud.xyz[:, :2], tiles, cell)
@@ -593,15 +597,15 @@ def _untouched(tiles: TileSet, cell: tuple[int, int], params: PipelineParams,
 
 def _stage_values(cloud: Cloud, stage: StageModel, use: np.ndarray,
                   wanted: np.ndarray) -> np.ndarray:
-    """(n,) the values a stage estimates from, computed on the points ``use`` (those earlier
-    stages left, near enough; NaN else) for the points ``wanted``."""
+    """(n,) or (n, m) the values a stage estimates from, computed on the points ``use`` (those
+    earlier stages left, near enough; NaN else) for the points ``wanted``."""
     estimate = get_detector(stage.detector).estimate
     assert estimate is not None
-    out = np.full(len(cloud), np.nan)
     index = np.flatnonzero(use)
-    if index.size:
-        sub = replace(cloud, wanted=wanted).subset(index)
-        out[index] = estimate.values(sub, stage.parameters())
+    sub = replace(cloud, wanted=wanted).subset(index)
+    values = estimate.values(sub, stage.parameters())
+    out = np.full((len(cloud), *values.shape[1:]), np.nan)
+    out[index] = values
     return out
 
 
@@ -711,11 +715,18 @@ def pin_stage(
     spec = get_detector(stage.detector)
     assert spec.estimate is not None
     folder.mkdir(parents=True, exist_ok=True)
-    values = np.lib.format.open_memmap(folder / f"values_{stage.detector}.npy", mode="w+",
-                                       dtype=np.float64, shape=(tiles.points,))
-    filled(values, np.nan)
-    for res in releasing(results, Releaser([values])):
+    values: np.ndarray | None = None
+    pages = Releaser([])
+    for res in releasing(results, pages):
+        if values is None:  # (n,) or (n, m): the first tile's values say which
+            values = np.lib.format.open_memmap(
+                folder / f"values_{stage.detector}.npy", mode="w+", dtype=np.float64,
+                shape=(tiles.points, *res["values"].shape[1:]))
+            filled(values, np.nan)
+            pages.add(values)
         values[res["index"]] = res["values"]
+    if values is None:  # no tile: no value
+        values = np.full(tiles.points, np.nan)
     step = 4_000_000
     parts = [values[s:s + step] for s in range(0, tiles.points, step)]
     pinned, info = spec.estimate.pin(stage.parameters(), parts)

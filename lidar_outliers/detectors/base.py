@@ -72,9 +72,10 @@ class Estimate:
     auto``), made of values each point has from its neighbourhood alone.
 
     ``applies(params)``: whether these parameters ask for the estimate. ``values(cloud,
-    params)``: (n,) float, each point's value (NaN: none). ``pin(params, parts)``: the
-    parameters with the estimate fixed, and the statistics' info on it, from the values of all
-    the points in file order (``parts``: consecutive pieces). A tiled run computes the values
+    params)``: (n,) float, each point's value (NaN: none), or (n, m) for a round that fixes m
+    estimates at once. ``pin(params, parts)``: the parameters with the estimate fixed, and the
+    statistics' info on it, from the values of all the points in file order (``parts``:
+    consecutive pieces). A tiled run computes the values
     tile by tile, pins, then runs the tiles with the pinned parameters: the whole cloud's
     result. Several parameters are estimated one round each, in an order the detector keeps:
     ``applies`` holds until the last is fixed, ``values`` and ``pin`` serve the first not yet

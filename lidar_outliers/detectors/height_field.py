@@ -64,18 +64,29 @@ def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
 
 def pin(params: HeightFieldParameters,
         parts: list[np.ndarray]) -> tuple[HeightFieldParameters, dict[str, Any]]:
-    """``sigma: auto`` from every point's full-patch residual, as the whole-cloud run makes it;
-    then the low test's spacing and voxel size."""
+    """``sigma: auto`` from every point's full-patch residual, as the whole-cloud run makes it
+    (with the low test's spacing from the same round when that is "auto" too); then the low
+    test's spacing and voxel size."""
     from dataclasses import replace
 
-    from algorithms.height_field import pending_estimate, pin_low_estimate, sigma_of_residuals
+    from algorithms.height_field import (
+        pending_estimate,
+        pin_low_estimate,
+        sigma_of_residuals,
+        spacing_of_values,
+        spacing_with_sigma,
+    )
 
     if pending_estimate(params) != "sigma":
         return pin_low_estimate(params, parts)
-    sigma = sigma_of_residuals(parts)
+    both = spacing_with_sigma(params)  # (n, 2): residuals, XY distances
+    sigma = sigma_of_residuals([p[:, 0] for p in parts] if both else parts)
     if not sigma > 0:  # as detect_height_field: a perfect surface leaves rounding only
         sigma = float(np.finfo(float).eps)
-    return replace(params, sigma=sigma), {"sigma": sigma, "sigma_source": "auto"}
+    pinned = replace(params, sigma=sigma)
+    if both:
+        pinned = replace(pinned, spacing_xy=spacing_of_values([p[:, 1] for p in parts]))
+    return pinned, {"sigma": sigma, "sigma_source": "auto"}
 
 
 def pending(params: HeightFieldParameters) -> bool:

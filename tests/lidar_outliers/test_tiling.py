@@ -479,3 +479,30 @@ def test_height_field_seen_again_tiled_equals_whole(scene, tmp_path):
     assert stats["mode"] == "tiled" and stats_whole["stages"][0]["info"]["points_static"] > 0
     _assert_same(_results(whole), _results(tiled), ["height_field"])
 
+
+
+def test_sigma_and_the_low_tests_spacing_are_fixed_in_one_round(street, tmp_path, monkeypatch):
+    """Both come from the same sample by file position: one round over the tiles gives each
+    sample point its residual and its XY distance, and pins both as the whole run measures
+    them."""
+    import algorithms.height_field as hf
+    from algorithms.detached import relative
+    from lidar_outliers.detectors.detached import grid_origin
+    from lidar_outliers.detectors.height_field import sigma_points
+    from lidar_outliers.lasio import read_cloud
+    from lidar_outliers.tiling import pin_stage
+
+    monkeypatch.setattr(hf, "SIGMA_SAMPLE", 300)
+    params = PipelineParams.model_validate({"pipeline": [{"detector": "height_field"}]})
+    stages = list(params.pipeline)
+    tiles = partition(street, tmp_path / "cells", STREET_TILE)
+    results = [run_tile(tiles, cell, params, stages, values_of=0)
+               for cell in sorted(tiles.cells)]
+    assert all(r["values"].shape == (len(r["index"]), 2) for r in results)
+    pinned, info = pin_stage(tiles, stages[0], results, tmp_path / "values")
+    fixed = pinned.parameters()
+    assert info["sigma_source"] == "auto" and fixed.voxel == "auto"
+    cloud = read_cloud(street)
+    local = relative(cloud.xyz, grid_origin(cloud))
+    assert fixed.spacing_xy == pytest.approx(hf.sample_spacing(local, sigma_points(cloud)),
+                                             rel=1e-12)
