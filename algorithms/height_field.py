@@ -397,8 +397,9 @@ def detect_height_field(
 
 # --------------------------------------------------------------------------- tile by tile
 #
-# As :mod:`algorithms.detached` runs tile by tile (see the notes there): sigma, the horizontal
-# spacing and the voxel size are measured over the whole cloud first, one after the other; a
+# As :mod:`algorithms.detached` runs tile by tile (see the notes there): sigma with the
+# horizontal spacing (:func:`spacing_with_sigma`), then the voxel size, are measured over the
+# whole cloud first; a
 # point's result then depends on its k nearest neighbours, on its piece (the piece's extent + 3
 # voxels while it is small in the region) and, in a small piece, on the floor cells within its
 # LOW_K_FLOOR-th nearest one and their 8 neighbours (2 cells, 6 voxels, further).

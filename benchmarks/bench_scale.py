@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -199,6 +200,7 @@ def run_service(cloud: Path, folder: Path, workers: int, params: str | None,
     (upload included) to the result downloaded."""
     from lidar_outliers.client import Client
 
+    shutil.rmtree(folder, ignore_errors=True)  # a fresh service: no users or jobs of a run before
     port = free_port()
     env = dict(os.environ, DATA_DIR=str(folder), WORKER_CONCURRENCY=str(workers),
                API_PORT=str(port), TILE_JOB_POINTS=str(tile_job_points),

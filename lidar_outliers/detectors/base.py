@@ -77,9 +77,11 @@ class Estimate:
     statistics' info on it, from the values of all the points in file order (``parts``:
     consecutive pieces). A tiled run computes the values
     tile by tile, pins, then runs the tiles with the pinned parameters: the whole cloud's
-    result. Several parameters are estimated one round each, in an order the detector keeps:
+    result. Several parameters are estimated in rounds, in an order the detector keeps:
     ``applies`` holds until the last is fixed, ``values`` and ``pin`` serve the first not yet
-    fixed (``detached``: its spacings, then its voxel size, which starts at one of them).
+    fixed, and those fixed with it from the same round's (n, m) values (``detached``: its
+    spacings, then its voxel size, which starts at one of them; ``height_field``: sigma and
+    its spacing, then its voxel size).
     ``reach`` then answers for the values of that round.
     """
 

@@ -2,10 +2,10 @@
 sigma (:mod:`algorithms.height_field`).
 
 It runs tile by tile: ``sigma: auto`` and the low test's horizontal spacing and voxel size are
-measured over the whole cloud first (:class:`~lidar_outliers.detectors.base.Estimate`, one
-round each), the low test's grids start at the file's lower-left corner in a tile as in the
-whole cloud, and each point reports how far its result reached
-(:func:`algorithms.height_field.tile_reach`).
+measured over the whole cloud first (:class:`~lidar_outliers.detectors.base.Estimate`: sigma
+and the spacing in one round, from the same sample, then the voxel size), the low test's grids
+start at the file's lower-left corner in a tile as in the whole cloud, and each point reports
+how far its result reached (:func:`algorithms.height_field.tile_reach`).
 """
 
 from __future__ import annotations
