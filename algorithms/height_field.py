@@ -263,7 +263,6 @@ def low_scores(local: np.ndarray, sigma: float, spacing_xy: float | str = "auto"
     return score, {"voxel": float(size), "points_tested": int(np.isfinite(score).sum())}
 
 
-
 def sample_spacing(local: np.ndarray, sample: np.ndarray) -> float:
     """The low test's horizontal spacing measured on the points of the mask ``sample``
     (:func:`sigma_sample`: by position in the file, so a run tile by tile computes only their
@@ -282,6 +281,7 @@ def spacing_of_values(parts: Iterable[np.ndarray]) -> float:
 
     value = strided_median(parts) * float(np.sqrt(np.pi / XY_SPACING_K))
     return value if np.isfinite(value) else 0.0
+
 
 def detect_height_field(
     xyz: np.ndarray,
@@ -399,10 +399,10 @@ def detect_height_field(
 #
 # As :mod:`algorithms.detached` runs tile by tile (see the notes there): sigma with the
 # horizontal spacing (:func:`spacing_with_sigma`), then the voxel size, are measured over the
-# whole cloud first; a
-# point's result then depends on its k nearest neighbours, on its piece (the piece's extent + 3
-# voxels while it is small in the region) and, in a small piece, on the floor cells within its
-# LOW_K_FLOOR-th nearest one and their 8 neighbours (2 cells, 6 voxels, further).
+# whole cloud first; a point's result then depends on its k nearest neighbours, on its piece
+# (the piece's extent + 3 voxels while it is small in the region) and, in a small piece, on the
+# floor cells within its LOW_K_FLOOR-th nearest one and their 8 neighbours (2 cells, 6 voxels,
+# further).
 
 #: The estimates a run tile by tile makes over the whole cloud first, in order.
 ESTIMATES = ("sigma", "spacing_xy", "voxel")
