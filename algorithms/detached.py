@@ -953,10 +953,3 @@ def reach_through(local: np.ndarray, points: np.ndarray, radius: np.ndarray,
     q = uncertain[near]
     np.maximum.at(out, row, np.hypot(*(xy[q] - xy[points[row]]).T) + reach[q])
     return out
-    xy = local[uncertain, :2]
-    near = cKDTree(xy).query_ball_point(local[points, :2], radius)
-    for i, found in enumerate(near):
-        if found:
-            d = np.hypot(*(xy[found] - local[points[i], :2]).T)
-            out[i] = max(out[i], float(np.max(d + reach[uncertain[found]])))
-    return out
