@@ -318,6 +318,14 @@ def strided_median(parts: Iterable[np.ndarray], max_points: int = SPACING_SAMPLE
     return float(np.median(sample)) if sample.size else float("nan")
 
 
+def xy_spacing_of_values(parts: Iterable[np.ndarray]) -> float:
+    """:func:`xy_spacing` from the points' :func:`xy_kth_distance` values given in file order
+    as ``parts`` (NaN: not measured): sqrt(pi / k) x their :func:`strided_median`; 0.0 without
+    any (at most k points)."""
+    value = strided_median(parts) * float(np.sqrt(np.pi / XY_SPACING_K))
+    return value if np.isfinite(value) else 0.0
+
+
 def grid_index(coords: np.ndarray, size: float, origin: np.ndarray) -> np.ndarray:
     """(n, d) int64 index of each point's cell of ``size`` metres in the grid whose corner is
     ``origin`` (d = 2: XY cells, 3: voxels): one formula, so two runs with the same origin
@@ -840,8 +848,7 @@ def pin_estimate(params: DetachedParameters,
         value = value if np.isfinite(value) else 0.0  # fewer than 2 points
         return replace(params, spacing=value), {"median_spacing": value}
     if name == "spacing_xy":
-        value = strided_median(parts) * float(np.sqrt(np.pi / XY_SPACING_K))
-        value = value if np.isfinite(value) else 0.0  # at most XY_SPACING_K points
+        value = xy_spacing_of_values(parts)
         return replace(params, spacing_xy=value), {"xy_spacing": value}
     if name == "voxel":
         value = scale_of_ladder(parts, params.piece_points, float(params.spacing_xy))

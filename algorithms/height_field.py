@@ -266,21 +266,12 @@ def low_scores(local: np.ndarray, sigma: float, spacing_xy: float | str = "auto"
 def sample_spacing(local: np.ndarray, sample: np.ndarray) -> float:
     """The low test's horizontal spacing measured on the points of the mask ``sample``
     (:func:`sigma_sample`: by position in the file, so a run tile by tile computes only their
-    distances in its round over the file): :func:`spacing_of_values` of their XY distances to
-    the k-th nearest other point of ``local``."""
-    from algorithms.detached import xy_kth_distance
+    distances in its round over the file):
+    :func:`algorithms.detached.xy_spacing_of_values` of their XY distances to the k-th nearest
+    other point of ``local``."""
+    from algorithms.detached import xy_kth_distance, xy_spacing_of_values
 
-    return spacing_of_values([xy_kth_distance(local, wanted=sample)])
-
-
-def spacing_of_values(parts: Iterable[np.ndarray]) -> float:
-    """sqrt(pi / k) x the strided median of the points' XY distances to their k-th nearest
-    other point, given in file order as ``parts`` (NaN: not in the sample), as
-    :func:`algorithms.detached.xy_spacing` measures a whole cloud; 0.0 without any."""
-    from algorithms.detached import XY_SPACING_K, strided_median
-
-    value = strided_median(parts) * float(np.sqrt(np.pi / XY_SPACING_K))
-    return value if np.isfinite(value) else 0.0
+    return xy_spacing_of_values([xy_kth_distance(local, wanted=sample)])
 
 
 def detect_height_field(
@@ -454,11 +445,11 @@ def pin_low_estimate(params: HeightFieldParameters,
     from every point's value, as the whole cloud's run measures it, and the note on it."""
     from dataclasses import replace
 
-    from algorithms.detached import scale_of_ladder
+    from algorithms.detached import scale_of_ladder, xy_spacing_of_values
 
     name = pending_estimate(params)
     if name == "spacing_xy":
-        return replace(params, spacing_xy=spacing_of_values(parts)), {}
+        return replace(params, spacing_xy=xy_spacing_of_values(parts)), {}
     if name == "voxel":
         value = scale_of_ladder(parts, LOW_PIECE_POINTS, float(params.spacing_xy))
         return replace(params, voxel=value), {}

@@ -69,11 +69,11 @@ def pin(params: HeightFieldParameters,
     test's spacing and voxel size."""
     from dataclasses import replace
 
+    from algorithms.detached import xy_spacing_of_values
     from algorithms.height_field import (
         pending_estimate,
         pin_low_estimate,
         sigma_of_residuals,
-        spacing_of_values,
         spacing_with_sigma,
     )
 
@@ -85,7 +85,7 @@ def pin(params: HeightFieldParameters,
         sigma = float(np.finfo(float).eps)
     pinned = replace(params, sigma=sigma)
     if both:
-        pinned = replace(pinned, spacing_xy=spacing_of_values([p[:, 1] for p in parts]))
+        pinned = replace(pinned, spacing_xy=xy_spacing_of_values([p[:, 1] for p in parts]))
     return pinned, {"sigma": sigma, "sigma_source": "auto"}
 
 
