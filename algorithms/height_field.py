@@ -426,12 +426,13 @@ def estimate_values(xyz: np.ndarray, params: HeightFieldParameters,
     from algorithms.detached import ladder_pieces, relative, xy_kth_distance
 
     name = pending_estimate(params)
-    local = relative(check_xyz(xyz), origin)
     if name == "sigma":
         residuals = full_residuals(xyz, params.k, origin, wanted)
         if not spacing_with_sigma(params):
             return residuals
-        return np.column_stack([residuals, xy_kth_distance(local, wanted=wanted)])
+        distances = xy_kth_distance(relative(check_xyz(xyz), origin), wanted=wanted)
+        return np.column_stack([residuals, distances])
+    local = relative(check_xyz(xyz), origin)
     if name == "spacing_xy":
         return xy_kth_distance(local, wanted=wanted)
     if name == "voxel":
