@@ -19,3 +19,7 @@ class ParameterError(LidarOutliersError, ValueError):
 
 class MissingDimensionError(LidarOutliersError):
     """A detector needs a dimension the data does not have (e.g. temporal without gps_time)."""
+
+
+class NotTimeOrderedError(ParameterError):
+    """A stream of points along time got a point earlier than one before it in its group."""

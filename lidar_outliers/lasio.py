@@ -26,6 +26,7 @@ import os
 import struct
 import sys
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -679,6 +680,9 @@ class ResultWriter:
 
     Use as a context manager; the file appears under ``out_path`` only if the block completes
     (temporary name in the same folder, renamed at the end), EVLRs are written after the points.
+    Each record is written (and compressed, for LAZ) on a thread of its own while the caller
+    prepares the next one; at most one write is in flight, and ``write`` must not be given a
+    record that the caller changes afterwards.
 
     >>> with ResultWriter(src, dst, result_dimensions(["temporal"])) as w:  # doctest: +SKIP
     ...     for chunk in iter_chunks(src):
@@ -705,6 +709,8 @@ class ResultWriter:
         check_laz_output(name, self.header.point_format.id, self.compress)
         self._atomic: contextlib.AbstractContextManager[Path] | None = None
         self._writer: laspy.LasWriter | None = None
+        self._thread = ThreadPoolExecutor(1, thread_name_prefix="las-writer")
+        self._in_flight: Future[None] | None = None
 
     def __enter__(self) -> ResultWriter:
         self._atomic = atomic_path(self.out_path)
@@ -724,12 +730,26 @@ class ResultWriter:
         return out
 
     def write(self, record: laspy.ScaleAwarePointRecord) -> None:
+        """Queue ``record`` after the previous one (waiting for that one: its errors raise here)."""
         assert self._writer is not None, "use ResultWriter as a context manager"
-        self._writer.write_points(record)
+        self._wait()
+        self._in_flight = self._thread.submit(self._writer.write_points, record)
+
+    def _wait(self) -> None:
+        in_flight, self._in_flight = self._in_flight, None
+        if in_flight is not None:
+            in_flight.result()
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         assert self._writer is not None and self._atomic is not None
         try:
+            try:
+                self._wait()
+            except Exception:
+                if exc_type is None:
+                    raise  # else the block's own error is the one to report
+            finally:
+                self._thread.shutdown()
             if exc_type is None:
                 _write_evlrs(self._writer, self.header)
             self._writer.close()

@@ -44,13 +44,13 @@ from algorithms.temporal.batch import (
     scores_from_differences,
 )
 from algorithms.temporal.parameters import check_params
+from algorithms.temporal.windows import use_compiled
 from lidar_outliers import lasio
 from lidar_outliers.detectors import StageModel, get_detector
 from lidar_outliers.errors import MissingDimensionError
 from lidar_outliers.output import FLAGS_DTYPE
 from lidar_outliers.pages import filled, release
 from lidar_outliers.pipeline import Progress
-from lidar_outliers.streaming import _in_time_order
 
 #: One point of a time series on disk: its index in the file, time, scanner and position.
 SERIES_DTYPE = np.dtype([("index", "<i8"), ("t", "<f8"), ("group", "<u2"), ("xyz", "<f8", (3,))])
@@ -400,7 +400,8 @@ def unit_differences(
     index = np.lib.format.open_memmap(folder / "index.npy", mode="w+", dtype=np.int64,
                                       shape=(facts.valid,))
     stream = TemporalStream(n1=n1, n2=n2, sigma=1.0, alpha=params.alpha,
-                            max_gap=params.max_gap, max_gap_by_group=gaps, differences=True)
+                            max_gap=params.max_gap, max_gap_by_group=gaps, differences=True,
+                            compiled=use_compiled(facts.valid))
     grouped = params.group_by != "none"
     for rec in ordered():
         rank = np.searchsorted(np.asarray(groups), rec["group"])
@@ -448,3 +449,28 @@ def sample_sigma(diffs: np.ndarray, chunk_points: int,
         release(diffs)
     sample = np.concatenate(parts) if parts else np.zeros((0, 4))
     return estimate_sigma(sample[:, :3], sample[:, 3], floor)
+
+
+def _in_time_order(t: np.ndarray, group: np.ndarray | None, last: dict[int, float]) -> bool:
+    """Whether finite times never decrease within a group, across chunks too (updates ``last``)."""
+    finite = np.isfinite(t)
+    tt = t[finite]
+    if tt.size == 0:
+        return True
+    if group is None:
+        gs, ts = np.zeros(tt.size, np.uint8), tt
+    else:
+        g = group[finite]  # uint16 point_source_id: numpy's stable sort is a radix sort here
+        order = np.argsort(g, kind="stable")
+        gs, ts = g[order], tt[order]
+    same = gs[1:] == gs[:-1]
+    if np.any(ts[1:][same] < ts[:-1][same]):
+        return False
+    firsts = np.flatnonzero(np.r_[True, ~same])
+    lasts = np.r_[firsts[1:] - 1, gs.size - 1]
+    for f, l in zip(firsts, lasts, strict=True):
+        gid = int(gs[f])
+        if gid in last and ts[f] < last[gid]:
+            return False
+        last[gid] = float(ts[l])
+    return True

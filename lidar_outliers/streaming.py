@@ -15,8 +15,10 @@ from typing import Any
 import laspy
 import numpy as np
 
+from algorithms.errors import NotTimeOrderedError
 from algorithms.stats import rounding_sigma
 from algorithms.temporal import TemporalStream
+from algorithms.temporal.windows import use_compiled
 from lidar_outliers import lasio
 from lidar_outliers.detectors import get_detector
 from lidar_outliers.lasio import LasFacts
@@ -29,10 +31,6 @@ from lidar_outliers.pipeline import (
     pipeline_statistics,
     stage_entry,
 )
-
-
-class _NotTimeOrdered(Exception):
-    """Raised inside the streaming run to fall back to the in-memory path."""
 
 
 def temporal_only(params: PipelineParams) -> bool:
@@ -52,13 +50,13 @@ def stream_temporal(
     stage = params.pipeline[0]
     spec = get_detector("temporal")
     stream = TemporalStream(n1=stage.n1, n2=stage.n2, sigma=stage.sigma, alpha=stage.alpha,
-                            max_gap=stage.max_gap, sigma_floor=rounding_sigma(facts.scales))
+                            max_gap=stage.max_gap, sigma_floor=rounding_sigma(facts.scales),
+                            compiled=use_compiled(facts.points))
     critical = stream.critical_value
     bit = FLAGS_DTYPE(spec.flag_bit)
     counts = _StreamCounts()
     started = time.perf_counter()
     pending: list[_Pending] = []
-    last_time: dict[int, float] = {}
     with lasio._laspy_errors(in_path.name), laspy.open(in_path) as reader:
         grid, _ = lasio.grid_origin(reader.header)
         scales = np.asarray(reader.header.scales)
@@ -72,8 +70,6 @@ def stream_temporal(
                 t = np.asarray(chunk.array["gps_time"], dtype=np.float64)
                 group = (None if stage.group_by == "none"
                          else np.asarray(chunk.array["point_source_id"]))
-                if not _in_time_order(t, group, last_time):
-                    raise _NotTimeOrdered
                 pending.append(_Pending(start, writer.record(chunk)))
                 done = stream.push(lasio.local_xyz(chunk, grid, scales), t, group,
                                    np.arange(start, stop, dtype=np.int64))
@@ -84,7 +80,7 @@ def stream_temporal(
                     progress(0.95 * stop / n, f"temporal (streaming): {stop:,} of {n:,} points")
             _assign(pending, *stream.finish())
             _flush(pending, writer, params, critical, bit, counts, final=True)
-    except _NotTimeOrdered:
+    except NotTimeOrderedError:  # the stream checks the order of every group as it goes
         return None, "points are not in time order per scanner: read into memory instead"
     entry = stage_entry(stage, n)
     entry.update(info=stream.info, points_tested=counts.tested, points_flagged=counts.flagged,
@@ -97,31 +93,6 @@ def stream_temporal(
                                 overall)
     stats["mode"] = "streaming"
     return stats, "streamed in one pass"
-
-
-def _in_time_order(t: np.ndarray, group: np.ndarray | None, last: dict[int, float]) -> bool:
-    """Whether finite times never decrease within a group, across chunks too (updates ``last``)."""
-    finite = np.isfinite(t)
-    tt = t[finite]
-    if tt.size == 0:
-        return True
-    if group is None:
-        gs, ts = np.zeros(tt.size, np.uint8), tt
-    else:
-        g = group[finite]  # uint16 point_source_id: numpy's stable sort is a radix sort here
-        order = np.argsort(g, kind="stable")
-        gs, ts = g[order], tt[order]
-    same = gs[1:] == gs[:-1]
-    if np.any(ts[1:][same] < ts[:-1][same]):
-        return False
-    firsts = np.flatnonzero(np.r_[True, ~same])
-    lasts = np.r_[firsts[1:] - 1, gs.size - 1]
-    for f, l in zip(firsts, lasts, strict=True):
-        gid = int(gs[f])
-        if gid in last and ts[f] < last[gid]:
-            return False
-        last[gid] = float(ts[l])
-    return True
 
 
 @dataclass
@@ -158,15 +129,14 @@ class _StreamCounts:
 
 
 def _assign(pending: list[_Pending], index: np.ndarray, score: np.ndarray) -> None:
+    """Give the pending chunks the final scores of their points (``index``: file positions)."""
     if index.size == 0:
         return
-    starts = np.array([p.start for p in pending])
-    which = np.searchsorted(starts, index, side="right") - 1
-    for k in np.unique(which):
-        sel = which == k
-        p = pending[int(k)]
-        p.score[index[sel] - p.start] = score[sel]
-        p.done += int(np.count_nonzero(sel))
+    for p in pending:  # a few chunks, each a contiguous range of positions
+        sel = (index >= p.start) & (index < p.stop)
+        if sel.any():
+            p.score[index[sel] - p.start] = score[sel]
+            p.done += int(np.count_nonzero(sel))
 
 
 def _flush(

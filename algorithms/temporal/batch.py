@@ -102,9 +102,12 @@ def prepare(
     return SortedPoints(rows, ts, z, starts, ends, gap_by_group)
 
 
-def unit_differences(s: SortedPoints, p: ResolvedParameters) -> tuple[np.ndarray, np.ndarray]:
-    """dz (m, 3) and sigma_dz (m,) of eqs. 15-16 with unit sigma; NaN where untested."""
-    return segment_differences(s.t, s.z, s.starts, s.ends, p.n1, p.n2)
+def unit_differences(
+    s: SortedPoints, p: ResolvedParameters, compiled: bool | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """dz (m, 3) and sigma_dz (m,) of eqs. 15-16 with unit sigma; NaN where untested.
+    ``compiled`` as in :func:`algorithms.temporal.windows.window_differences`."""
+    return segment_differences(s.t, s.z, s.starts, s.ends, p.n1, p.n2, compiled=compiled)
 
 
 def estimate_sigma(dz_unit: np.ndarray, sigma_dz_unit: np.ndarray,

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from algorithms.errors import ParameterError
+from algorithms.errors import NotTimeOrderedError, ParameterError
 from algorithms.temporal.batch import (
     estimate_sigma,
     prepare,
@@ -79,6 +79,8 @@ class TemporalStream:
     scores, return each point's unit-sigma differences (m, 4): dz of eq. 15 per axis and
     sqrt(eq. 16) (NaN where untested), from which ``estimate_sigma`` and
     ``scores_from_differences`` give the batch's sigma and scores; sigma is not used then.
+    ``compiled``: run the compiled smoother (the same bits; worth its import for a long
+    stream), None: only when numba is loaded already (``windows.use_compiled`` per chunk).
     """
 
     def __init__(
@@ -93,11 +95,13 @@ class TemporalStream:
         max_gap_by_group: Mapping[int, float] | None = None,
         differences: bool = False,
         sigma_floor: float | Sequence[float] = 0.0,
+        compiled: bool | None = None,
     ) -> None:
         self._p = check_params(n1, n2, sigma, alpha, max_gap)
         self._sigma_floor = np.asarray(sigma_floor, dtype=np.float64)
         self._given_gaps = None if max_gap_by_group is None else dict(max_gap_by_group)
         self._differences = bool(differences)
+        self.compiled = compiled  # may change between chunks: the same bits either way
         if isinstance(warmup_points, bool) or not isinstance(warmup_points, int | np.integer):
             raise ParameterError(f"warmup_points must be an integer, got {warmup_points!r}")
         self._warmup_points = int(warmup_points)
@@ -187,7 +191,7 @@ class TemporalStream:
                 if gap is not None:
                     self._tail(gid).max_gap = gap
         if self._sigma is None:
-            dz, sdz = unit_differences(s, self._p)
+            dz, sdz = unit_differences(s, self._p, self.compiled)
             self._sigma, self._sigma_source = estimate_sigma(dz, sdz, self._sigma_floor)
         self._resolved = True
         return self._process(xyz, t, group, index, final)
@@ -259,7 +263,7 @@ class TemporalStream:
         """Append one group's rows, score the rows whose windows are complete, trim the tail."""
         t = np.concatenate([tail.t, t_new])
         if np.any(t[1:] < t[:-1]):
-            raise ParameterError(
+            raise NotTimeOrderedError(
                 "TemporalStream needs points ordered by gps_time within each group"
             )
         xyz = np.concatenate([tail.xyz, xyz_new])
@@ -280,7 +284,8 @@ class TemporalStream:
         self._short_segments += n_short
         score = np.zeros((0, *self._width))
         if targets.size:
-            dz, sdz = window_differences(t, xyz, np.empty(0), targets, lo, hi)
+            dz, sdz = window_differences(t, xyz, np.empty(0), targets, lo, hi,
+                                          compiled=self.compiled)
             score = self._output(dz, sdz)
         # Keep the open segment's pending rows and up to n1 + n2 rows of context before them.
         n = t.size

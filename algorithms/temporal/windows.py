@@ -12,6 +12,7 @@ Every point is computed alone, with the same operations whichever way its window
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -27,6 +28,16 @@ _PARALLEL_POINTS = 2 * _BLOCK
 
 #: Shortest run of alike consecutive windows that ``window_differences`` serves by slices.
 _MIN_RUN = 64
+
+#: Windows from which the compiled smoother (:mod:`algorithms.temporal.compiled`) repays
+#: numba's import and cached load (about 0.3 s): about 1.5 s of numpy work on two cores.
+COMPILED_MIN_WINDOWS = 4_000_000
+
+
+def use_compiled(windows: int) -> bool:
+    """Whether to run the compiled smoother for ``windows`` windows: when they are enough to
+    repay numba's import, or numba is loaded already. Both give the same bits."""
+    return windows >= COMPILED_MIN_WINDOWS or "numba" in sys.modules
 
 
 def window_bounds(
@@ -249,6 +260,8 @@ def window_differences(
     targets: np.ndarray,
     lo: np.ndarray,
     hi: np.ndarray,
+    *,
+    compiled: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Eqs. 14-16 for many points, each with its own window.
 
@@ -263,23 +276,39 @@ def window_differences(
     a_0(k) = 1). Eq. 17 is dz / sigma_dz[:, None]. Every point is computed alone, with the
     same operations in the same order whether its window is sliced or gathered, so the result
     does not depend on how the points are split into calls, blocks or threads.
+
+    compiled : run the compiled smoother (unit sigma only; the same bits), None: ``use_compiled``.
     """
     t = np.ascontiguousarray(t, dtype=np.float64)
-    z_rows = np.ascontiguousarray(np.asarray(z, dtype=np.float64).T)  # (m, n): rows slice fast
     sigma = np.ascontiguousarray(sigma, dtype=np.float64)
     targets = np.asarray(targets, dtype=np.int64)
+    if sigma.size == 0 and (use_compiled(targets.size) if compiled is None else compiled):
+        from algorithms.temporal.compiled import window_differences_compiled
+
+        z_rows = np.asarray(z, dtype=np.float64).T  # a view: the kernel takes any strides
+        dz, sigma_dz = window_differences_compiled(t, z_rows, targets, np.asarray(lo, np.int64),
+                                                   np.asarray(hi, np.int64))
+        return dz.T, sigma_dz
+    z_rows = np.ascontiguousarray(np.asarray(z, dtype=np.float64).T)  # (m, n): rows slice fast
     plan = _plan_windows(targets, np.asarray(lo, np.int64), np.asarray(hi, np.int64), t.size)
     return _differences(t, z_rows, sigma, plan, targets.size)
 
 
 def segment_differences(
-    t: np.ndarray, z: np.ndarray, starts: np.ndarray, ends: np.ndarray, n1: int, n2: int
+    t: np.ndarray, z: np.ndarray, starts: np.ndarray, ends: np.ndarray, n1: int, n2: int,
+    *, compiled: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``window_differences`` with unit sigma for every row of the segments starts:ends.
 
     t (n,), z (m, n) C-contiguous (one row per series); the segments cover rows 0:n in order.
     Each row's window follows ``window_bounds``; equal to ``window_differences`` with those
-    windows, without the (n,) window arrays.
+    windows, without the (n,) window arrays. ``compiled`` as in ``window_differences``.
     """
+    if use_compiled(t.size) if compiled is None else compiled:
+        from algorithms.temporal.compiled import segment_differences_compiled
+
+        dz, sigma_dz = segment_differences_compiled(
+            t, z, np.asarray(starts, np.int64), np.asarray(ends, np.int64), n1, n2)
+        return dz.T, sigma_dz
     plan = _plan_segments(starts, ends, n1, n2)
     return _differences(t, z, np.empty(0), plan, t.size)

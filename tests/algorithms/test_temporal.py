@@ -13,7 +13,7 @@ import laspy
 import numpy as np
 import pytest
 
-from algorithms.errors import MissingDimensionError, ParameterError
+from algorithms.errors import MissingDimensionError, NotTimeOrderedError, ParameterError
 from algorithms.stats import normal_critical_value
 from algorithms.temporal import TemporalStream, detect_temporal, windows
 from algorithms.temporal.segments import cut_segments, segment_windows
@@ -194,9 +194,10 @@ def test_sliced_and_gathered_windows_give_identical_bits():
     n = t.size
     lo, hi, _, _ = segment_windows(t, bounds, np.array([10.0, 10.0]), 5, 5)
     starts, ends = cut_segments(t, bounds, np.array([10.0, 10.0]))
-    sliced = segment_differences(t, np.ascontiguousarray(xyz.T), starts, ends, 5, 5)
+    sliced = segment_differences(t, np.ascontiguousarray(xyz.T), starts, ends, 5, 5,
+                                 compiled=False)
     perm = np.random.default_rng(0).permutation(n)  # no consecutive targets: all gathered
-    dz, sdz = window_differences(t, xyz, np.empty(0), perm, lo[perm], hi[perm])
+    dz, sdz = window_differences(t, xyz, np.empty(0), perm, lo[perm], hi[perm], compiled=False)
     gathered = np.empty_like(dz), np.empty_like(sdz)
     gathered[0][perm], gathered[1][perm] = dz, sdz
     assert np.isfinite(sliced[1]).sum() > n // 2
@@ -208,14 +209,58 @@ def test_results_do_not_depend_on_blocks_or_threads(monkeypatch):
     t, xyz, bounds = segmented_series(4)
     starts, ends = cut_segments(t, bounds, np.array([10.0, 10.0]))
     z = np.ascontiguousarray(xyz.T)
-    reference = segment_differences(t, z, starts, ends, 4, 6)
+    reference = segment_differences(t, z, starts, ends, 4, 6, compiled=False)
     monkeypatch.setattr(windows, "_BLOCK", 37)
     monkeypatch.setattr(windows, "_PARALLEL_POINTS", 0)
     for threads in ("1", "2", "3"):
         monkeypatch.setenv("NUMBA_NUM_THREADS", threads)
-        dz, sdz = segment_differences(t, z, starts, ends, 4, 6)
+        dz, sdz = segment_differences(t, z, starts, ends, 4, 6, compiled=False)
         np.testing.assert_array_equal(dz, reference[0])
         np.testing.assert_array_equal(sdz, reference[1])
+
+
+def series_with_repeated_times(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``segmented_series`` with runs of 20 equal times: windows inside them hold fewer than
+    three distinct times and are untested."""
+    t, xyz, bounds = segmented_series(seed)
+    t = t.copy()
+    for a in np.random.default_rng(seed).choice(t.size - 21, 6, replace=False):
+        t[a : a + 20] = t[a]
+    return t, xyz, bounds
+
+
+@pytest.mark.parametrize("seed", [5, 6, 7])
+@pytest.mark.parametrize(("n1", "n2"), [(5, 5), (1, 2), (10, 3), (0, 6)])
+def test_compiled_smoother_gives_the_numpy_bits(seed, n1, n2):
+    """The compiled smoother runs the numpy blocks' operations in their order: equal bits,
+    for every row of cut segments (sliced, shared and gathered windows) and for any windows."""
+    t, xyz, bounds = series_with_repeated_times(seed)
+    gaps = np.array([10.0, 10.0])
+    starts, ends = cut_segments(t, bounds, gaps)
+    z = np.ascontiguousarray(xyz.T)
+    numpy_rows = segment_differences(t, z, starts, ends, n1, n2, compiled=False)
+    compiled_rows = segment_differences(t, z, starts, ends, n1, n2, compiled=True)
+    assert np.isnan(numpy_rows[1]).sum() > 20 and np.isfinite(numpy_rows[1]).sum() > 1000
+    for a, b in zip(numpy_rows, compiled_rows, strict=True):
+        np.testing.assert_array_equal(a, b)
+    lo, hi, _, _ = segment_windows(t, bounds, gaps, n1, n2)
+    perm = np.random.default_rng(seed).permutation(t.size)
+    for runs in (np.arange(t.size), perm):  # consecutive windows, then scattered ones
+        expected = window_differences(t, xyz, np.empty(0), runs, lo[runs], hi[runs],
+                                      compiled=False)
+        got = window_differences(t, xyz, np.empty(0), runs, lo[runs], hi[runs], compiled=True)
+        for a, b in zip(expected, got, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_compiled_smoother_is_chosen_for_long_series_or_when_numba_is_loaded(monkeypatch):
+    import sys
+
+    monkeypatch.delitem(sys.modules, "numba", raising=False)
+    assert not windows.use_compiled(windows.COMPILED_MIN_WINDOWS - 1)
+    assert windows.use_compiled(windows.COMPILED_MIN_WINDOWS)
+    monkeypatch.setitem(sys.modules, "numba", object())
+    assert windows.use_compiled(1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -517,6 +562,26 @@ def test_stream_equals_batch_exactly(chunk):
     assert stream.critical_value == batch.critical_value
 
 
+def test_stream_gives_the_same_bits_with_either_smoother_and_when_it_switches():
+    xyz, t, group = _stream_data(6000, seed=24)
+    scores = []
+    for compiled in (False, True, "switch"):
+        stream = TemporalStream(sigma=0.01, max_gap=6.0, compiled=compiled is True)
+        score = np.full(t.size, -1.0)
+        for a in range(0, t.size, 500):
+            if compiled == "switch":
+                stream.compiled = a >= 3000
+            idx, s = stream.push(xyz[a:a + 500], t[a:a + 500], group[a:a + 500],
+                                 np.arange(a, min(a + 500, t.size)))
+            score[idx] = s
+        idx, s = stream.finish()
+        score[idx] = s
+        scores.append(score)
+    assert np.isfinite(scores[0]).sum() > 5000
+    np.testing.assert_array_equal(scores[0], scores[1])
+    np.testing.assert_array_equal(scores[0], scores[2])
+
+
 def test_stream_holds_back_a_bounded_tail():
     xyz, t, group = _stream_data(20000, seed=21)
     stream = TemporalStream(sigma=0.01, max_gap=6.0, n1=5, n2=5)
@@ -576,8 +641,9 @@ def test_stream_refuses_unsorted_time_within_group():
     stream = TemporalStream(sigma=0.01, max_gap=1.0)
     xyz = np.zeros((3, 3))
     stream.push(xyz, np.array([0.0, 1.0, 2.0]), None, np.arange(3))
-    with pytest.raises(ParameterError, match="ordered by gps_time"):
+    with pytest.raises(NotTimeOrderedError, match="ordered by gps_time"):
         stream.push(xyz, np.array([1.5, 3.0, 4.0]), None, np.arange(3, 6))
+    assert issubclass(NotTimeOrderedError, ParameterError)
 
 
 # --------------------------------------------------------------------------------------------

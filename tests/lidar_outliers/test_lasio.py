@@ -11,6 +11,7 @@ import pytest
 
 from lidar_outliers import lasio
 from lidar_outliers.errors import LasFormatError
+from lidar_outliers.output import result_dimensions
 from tests.lasfiles import WKT, scan_line_cloud, write_las
 
 
@@ -184,6 +185,18 @@ def test_failed_write_leaves_no_file(tmp_path, rng):
     with pytest.raises(Stop):
         lasio.write_result(src, out, flags=np.zeros(n, np.uint8), scores={}, chunk_points=100,
                            progress=progress)
+    assert list(out.parent.iterdir()) == []
+
+
+def test_a_write_that_fails_on_the_writer_thread_raises_and_leaves_no_file(tmp_path, rng):
+    xyz, t, _ = scan_line_cloud(500, rng)
+    src = write_las(tmp_path / "in.las", xyz, gps_time=t)
+    out = tmp_path / "out" / "result.las"
+    out.parent.mkdir()
+    with pytest.raises(laspy.errors.LaspyException, match="[Ii]ncompatible"):
+        with lasio.ResultWriter(src, out, result_dimensions(["temporal"])) as writer:
+            for chunk in lasio.iter_chunks(src, 100):
+                writer.write(chunk)  # the input's record lacks the result's dimensions
     assert list(out.parent.iterdir()) == []
 
 
