@@ -743,20 +743,28 @@ class ResultWriter:
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         assert self._writer is not None and self._atomic is not None
         try:
-            try:
-                self._wait()
-            except Exception:
-                if exc_type is None:
-                    raise  # else the block's own error is the one to report
-            finally:
-                self._thread.shutdown()
-            if exc_type is None:
-                _write_evlrs(self._writer, self.header)
-            self._writer.close()
+            self._finish(complete=exc_type is None)
         except BaseException:
             self._atomic.__exit__(*sys.exc_info())
             raise
         self._atomic.__exit__(exc_type, exc, tb)
+
+    def _finish(self, complete: bool) -> None:
+        """Wait for the last write, add the EVLRs if the block completed, and close the file in
+        every case: a removed file that stays open keeps its space on the disk. A write error
+        raises only if the block completed; otherwise the block's own error is the one to
+        report."""
+        assert self._writer is not None
+        try:
+            self._wait()
+            if complete:
+                _write_evlrs(self._writer, self.header)
+        except Exception:
+            if complete:
+                raise
+        finally:
+            self._thread.shutdown()
+            self._writer.close()
 
 
 def rewrite(

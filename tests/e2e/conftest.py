@@ -50,6 +50,8 @@ write_cloud(folder / "in.las", n=3000)
 for pipeline in (None, [{"detector": "temporal", "sigma": 0.01}], [{"detector": "section"}],
                  [{"detector": "patch", "sigma": 0.01}, {"detector": "section"}]):
     process_file(folder / "in.las", folder / "out.las", {"pipeline": pipeline})
+from algorithms.temporal.compiled import load
+load()  # the compiled smoother, which a stream of a long file or a tiled pre-pass takes
 """
 
 

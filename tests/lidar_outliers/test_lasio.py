@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import struct
 from pathlib import Path
 
@@ -198,6 +199,19 @@ def test_a_write_that_fails_on_the_writer_thread_raises_and_leaves_no_file(tmp_p
             for chunk in lasio.iter_chunks(src, 100):
                 writer.write(chunk)  # the input's record lacks the result's dimensions
     assert list(out.parent.iterdir()) == []
+    # and closed: a removed file that stays open keeps its space on the disk
+    assert not [f for f in _open_files() if f.startswith(str(out.parent))]
+
+
+def _open_files() -> list[str]:
+    """The paths this process holds open (Linux)."""
+    paths = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            paths.append(os.readlink(f"/proc/self/fd/{fd}"))
+        except FileNotFoundError:  # the listing's own descriptor, closed since
+            pass
+    return paths
 
 
 # --------------------------------------------------------------------------- header refusals
