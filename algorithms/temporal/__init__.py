@@ -13,13 +13,16 @@ Modules, one job each:
   ``standardised_difference`` (eq. 17);
 - ``windows``: each point's window (``window_bounds``) and the evaluation of many windows, by
   slices or gathered rows, on all cores (``window_differences``, ``segment_differences``);
+- ``compiled``: the same evaluation compiled with numba, window by window with the same bits,
+  for long series (imported only when one runs);
 - ``segments``: scan lines cut into segments at time gaps (``cut_segments``, ``max_gap``);
 - ``parameters``: :class:`TemporalParameters` and their resolution, shared by both detectors;
 - ``batch``: ``detect_temporal``, the robust sigma estimate and the scores;
 - ``stream``: ``TemporalStream``, the same detector over chunks (identical results for fixed
   sigma and max_gap).
 
-Plain numpy throughout (scipy only for t-values, lazily): importing this package is cheap.
+Plain numpy at import (scipy only for t-values, numba only for ``compiled``, both lazily):
+importing this package is cheap.
 """
 
 from __future__ import annotations
