@@ -40,6 +40,7 @@ from algorithms.temporal import TemporalParameters, TemporalStream
 from algorithms.temporal.batch import (
     SIGMA_SAMPLE_POINTS,
     estimate_sigma,
+    finite_points,
     result_info,
     scores_from_differences,
 )
@@ -174,10 +175,7 @@ def _file_series(in_path: Path, group_by: str, flags: np.ndarray | None,
 
 def _valid(rec: np.ndarray) -> np.ndarray:
     """Points the detector uses: finite time and position (the others score NaN)."""
-    valid = np.isfinite(rec["t"])
-    for axis in range(3):  # column by column: .all(axis=1) over 3 columns is 15x slower
-        valid &= np.isfinite(rec["xyz"][:, axis])
-    return valid
+    return finite_points(rec["xyz"], rec["t"])
 
 
 @dataclass
