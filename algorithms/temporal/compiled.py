@@ -75,11 +75,10 @@ def _lanes(t, z, k, lo, w, count, out, dz, sigma_dz, q1, q2, v):
     for i in range(w):  # the weights a_i of eq. 11, in place of q_1
         for q in range(count):
             q1[i, q] = q1[i, q] * c1[q] + inv_n0 + q2[i, q] * c2[q]
-    usable = v[11]
+    usable, z_k, prediction = v[11], v[12], v[13]
     for q in range(count):
         usable[q] = n2[q] > _SINGULAR_RATIO * n0 and 1.0 - a_0[q] > _MIN_ONE_MINUS_A0
     for j in range(z.shape[0]):  # eq. 15 relative to z(k): the terms start from the first row
-        z_k, prediction = v[12], v[13]
         for q in range(count):
             z_k[q] = z[j, k[q]]
             prediction[q] = (z[j, lo[q]] - z_k[q]) * q1[0, q]
