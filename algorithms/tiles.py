@@ -120,7 +120,7 @@ def kth_distance_within(points: np.ndarray, k: int, where: np.ndarray,
     diagonal of k points. A tile's reach check asks only whether the distance fits in the
     halo, and in a dense cloud nearly every point answers so without a k-d tree query.
     """
-    from scipy.spatial import cKDTree
+    from algorithms.neighbours import neighbour_tree, query_nearest
 
     n, d = points.shape
     out = np.zeros(n)
@@ -136,6 +136,6 @@ def kth_distance_within(points: np.ndarray, k: int, where: np.ndarray,
             out[bounded] = limit
             exact &= ~bounded
     if exact.any():
-        dist, _ = cKDTree(points).query(points[exact], k=[k], workers=-1)
+        dist, _ = query_nearest(neighbour_tree(points), points[exact], [k])
         out[exact] = dist[:, 0]
     return out

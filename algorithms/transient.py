@@ -107,8 +107,6 @@ def neighbour_table(xyz: np.ndarray, k: int, radius: float, rows: np.ndarray | N
     Points as far as the k-th (within ``radius``) are taken in index order
     (:func:`_tied_neighbours`), so the table is the same in any part of the cloud that holds
     the points within ``radius`` in the same order (a tile's region is in file order)."""
-    from scipy.spatial import cKDTree
-
     n = len(xyz)
     rows = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
     m = len(rows)
@@ -117,13 +115,13 @@ def neighbour_table(xyz: np.ndarray, k: int, radius: float, rows: np.ndarray | N
     near = np.zeros((m, k), dtype=bool)
     if m == 0:
         return idx, near
-    from algorithms.neighbours import first_other_points
+    from algorithms.neighbours import first_other_points, neighbour_tree, query_nearest
 
-    tree = cKDTree(xyz)
+    tree = neighbour_tree(xyz)
     for s in range(0, m, KNN_BATCH):
         batch = rows[s:s + KNN_BATCH]
-        d, j = tree.query(xyz[batch], k=kq, workers=-1)
-        d, j = d.reshape(-1, kq), j.reshape(-1, kq).astype(np.int64)
+        d, j = query_nearest(tree, xyz[batch], kq)
+        d, j = d.reshape(-1, kq), j.reshape(-1, kq).astype(np.int64, copy=False)
         # each point itself is dropped (not necessarily column 0 when points coincide)
         tied = first_other_points(d, j, batch, n, k, radius, idx[s:s + len(j)],
                                   near[s:s + len(j)])
