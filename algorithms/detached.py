@@ -494,6 +494,8 @@ def ladder_pieces(local: np.ndarray, piece_points: int,
     sizes = voxel_ladder(start)
     for first in (0, 1):
         family = sizes[first::2]
+        if not family:  # a ladder of one size (a start beyond the last but one)
+            continue
         voxels, point_voxel, stats = _finest_voxels(local, family[0])
         for j, size in enumerate(family):
             if j:
@@ -559,16 +561,26 @@ def _small_voxel_pieces(voxels: np.ndarray, stats: np.ndarray, piece_points: int
     return small, extent
 
 
-def scale_of_ladder(parts: Iterable[np.ndarray], piece_points: int, start: float) -> float:
+def scale_of_ladder(parts: Iterable[np.ndarray], piece_points: int, start: float,
+                    cut_from: float | None = None) -> float:
     """The size :func:`surface_scale` chooses for the cloud whose points' :func:`small_ladder`
     values are ``parts`` (NaN: not in the cloud); 0.0 where it chooses none or the cloud has at
-    most ``piece_points`` points (as :func:`detect_detached` leaves the test out)."""
+    most ``piece_points`` points (as :func:`detect_detached` leaves the test out).
+
+    ``cut_from``: the start of the ladder the values were cut at, when it is not ``start``
+    (at most ``start``, which may lie at most at ``LARGEST_VOXEL``): the ladder from ``start``
+    is its suffix, so each value's bits are shifted by the sizes before ``start``."""
     sizes = voxel_ladder(start)
+    shift = 0
+    if cut_from is not None:
+        if not cut_from <= start <= LARGEST_VOXEL:
+            raise ValueError(f"a ladder cut from {cut_from} holds no ladder from {start}")
+        shift = len(voxel_ladder(cut_from)) - len(sizes)
     counts = np.zeros(len(sizes), dtype=np.int64)
     n = 0
     for part in parts:
         v = np.asarray(part)
-        bits = v[np.isfinite(v)].astype(np.int64)
+        bits = v[np.isfinite(v)].astype(np.int64) >> shift
         n += bits.size
         for i in range(len(sizes)):
             counts[i] += int(np.count_nonzero((bits >> i) & 1))

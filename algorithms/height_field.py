@@ -387,10 +387,11 @@ def detect_height_field(
 
 # --------------------------------------------------------------------------- tile by tile
 #
-# As :mod:`algorithms.detached` runs tile by tile (see the notes there): sigma with the
-# horizontal spacing (:func:`spacing_with_sigma`), then the voxel size, are measured over the
-# whole cloud first; a point's result then depends on its k nearest neighbours, on its piece
-# (the piece's extent + 3 voxels while it is small in the region) and, in a small piece, on the
+# As :mod:`algorithms.detached` runs tile by tile (see the notes there): sigma, the horizontal
+# spacing (:func:`spacing_with_sigma`) and the voxel size (:func:`voxel_with_sigma`) are
+# measured over the whole cloud first, in one round (with sigma given: the spacing, then the
+# voxel size); a point's result then depends on its k nearest neighbours, on its piece (the
+# piece's extent + 3 voxels while it is small in the region) and, in a small piece, on the
 # floor cells within its LOW_K_FLOOR-th nearest one and their 8 neighbours (2 cells, 6 voxels,
 # further).
 
@@ -414,29 +415,85 @@ def spacing_with_sigma(params: HeightFieldParameters) -> bool:
     return pending_estimate(params) == "sigma" and params.low and params.spacing_xy == "auto"
 
 
+def voxel_with_sigma(params: HeightFieldParameters) -> bool:
+    """Whether the round that estimates ``sigma`` also cuts the small-piece ladder the voxel
+    size is chosen from (the low test on, ``voxel`` "auto"). It is cut from the ladder's
+    finest size, :data:`SIGMA_ROUND_LADDER_START`: the ladder of any start is a suffix of that
+    one (:func:`algorithms.detached.voxel_ladder`), so the spacing that trims it need not be
+    known until the round is pinned (:func:`pin_sigma_round`)."""
+    return pending_estimate(params) == "sigma" and params.low and params.voxel == "auto"
+
+
+#: Where the ladder of the round that estimates ``sigma`` starts (:func:`voxel_with_sigma`).
+SIGMA_ROUND_LADDER_START = 0.0
+
+
+def sigma_round_columns(params: HeightFieldParameters) -> list[str]:
+    """The values of each point in the round that estimates ``sigma``, in column order:
+    ``residual``, then ``xy_distance`` (:func:`spacing_with_sigma`), then ``ladder``
+    (:func:`voxel_with_sigma`)."""
+    return ["residual", *(["xy_distance"] if spacing_with_sigma(params) else []),
+            *(["ladder"] if voxel_with_sigma(params) else [])]
+
+
 def estimate_values(xyz: np.ndarray, params: HeightFieldParameters,
-                    origin: np.ndarray | None, wanted: np.ndarray | None = None) -> np.ndarray:
+                    origin: np.ndarray | None, wanted: np.ndarray | None = None,
+                    ladder: np.ndarray | None = None) -> np.ndarray:
     """(n,) each point's value for the pending estimate: its full-patch residual
     (:func:`full_residuals`), its XY distance to its 8th neighbour
     (:func:`algorithms.detached.xy_kth_distance`) or its small-piece bits
     (:func:`algorithms.detached.small_ladder`); the first two only for the points of the mask
-    ``wanted`` when given (NaN elsewhere). (n, 2) residuals and XY distances when the round
-    measures both (:func:`spacing_with_sigma`)."""
+    ``wanted`` when given (NaN elsewhere). (n, m) in the round that estimates ``sigma`` with
+    others: the columns of :func:`sigma_round_columns` (the bits for every point).
+    ``ladder``: the bits of :data:`SIGMA_ROUND_LADDER_START`'s ladder when already cut."""
     from algorithms.detached import ladder_pieces, relative, xy_kth_distance
 
     name = pending_estimate(params)
     if name == "sigma":
-        residuals = full_residuals(xyz, params.k, origin, wanted)
-        if not spacing_with_sigma(params):
-            return residuals
-        distances = xy_kth_distance(relative(check_xyz(xyz), origin), wanted=wanted)
-        return np.column_stack([residuals, distances])
+        columns = [full_residuals(xyz, params.k, origin, wanted)]
+        if spacing_with_sigma(params):
+            columns.append(xy_kth_distance(relative(check_xyz(xyz), origin), wanted=wanted))
+        if voxel_with_sigma(params):
+            columns.append(ladder if ladder is not None else ladder_pieces(
+                relative(check_xyz(xyz), origin), LOW_PIECE_POINTS,
+                SIGMA_ROUND_LADDER_START)[0])
+        return columns[0] if len(columns) == 1 else np.column_stack(columns)
     local = relative(check_xyz(xyz), origin)
     if name == "spacing_xy":
         return xy_kth_distance(local, wanted=wanted)
     if name == "voxel":
         return ladder_pieces(local, LOW_PIECE_POINTS, float(params.spacing_xy))[0]
     raise ValueError("every estimate of these parameters is given")
+
+
+def pin_sigma_round(params: HeightFieldParameters, parts: list[np.ndarray]
+                    ) -> tuple[HeightFieldParameters, dict]:
+    """The parameters with what the round that estimates ``sigma`` measured fixed from every
+    point's values (:func:`sigma_round_columns`), as the whole cloud's run measures them:
+    sigma, then the spacing, then the voxel size from the ladder trimmed at that spacing (left
+    "auto" for a round of its own when the spacing lies beyond the ladder); and the note."""
+    from dataclasses import replace
+
+    from algorithms.detached import LARGEST_VOXEL, scale_of_ladder, xy_spacing_of_values
+
+    columns = sigma_round_columns(params)
+
+    def column(name: str) -> list[np.ndarray]:
+        c = columns.index(name)
+        return [p[:, c] if p.ndim == 2 else p for p in parts]
+
+    sigma = sigma_of_residuals(column("residual"))
+    if not sigma > 0:  # as detect_height_field: a perfect surface leaves rounding only
+        sigma = float(np.finfo(float).eps)
+    pinned = replace(params, sigma=sigma)
+    if "xy_distance" in columns:
+        pinned = replace(pinned, spacing_xy=xy_spacing_of_values(column("xy_distance")))
+    if "ladder" in columns and pinned.spacing_xy != "auto":
+        start = float(pinned.spacing_xy)
+        if start <= LARGEST_VOXEL:
+            pinned = replace(pinned, voxel=scale_of_ladder(
+                column("ladder"), LOW_PIECE_POINTS, start, SIGMA_ROUND_LADDER_START))
+    return pinned, {"sigma": sigma, "sigma_source": "auto"}
 
 
 def pin_low_estimate(params: HeightFieldParameters,
@@ -457,11 +514,17 @@ def pin_low_estimate(params: HeightFieldParameters,
 
 
 def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray,
-               origin: np.ndarray | None, allowed: np.ndarray | None = None) -> np.ndarray:
+               origin: np.ndarray | None, allowed: np.ndarray | None = None,
+               sample: np.ndarray | None = None,
+               ladder: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(n,) XY metres around each point of the mask ``where`` (others: 0) its result, or with
     an estimate pending its value, depended on in this cloud (a region of a larger one).
     ``allowed`` (n,): the reach each point may have; a neighbourhood known to lie within it
-    may be reported by that bound (:func:`algorithms.tiles.kth_distance_within`)."""
+    may be reported by that bound (:func:`algorithms.tiles.kth_distance_within`).
+    In the round that estimates ``sigma``: the residuals and distances are those of the points
+    of the mask ``sample`` alone (default all), the ladder's bits (:func:`voxel_with_sigma`)
+    every point's; ``ladder``: (bits, reach) of :data:`SIGMA_ROUND_LADDER_START`'s ladder
+    when already cut."""
     from scipy.spatial import cKDTree
 
     from algorithms.detached import (
@@ -487,6 +550,14 @@ def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray
         reach = ladder_pieces(local, LOW_PIECE_POINTS, float(params.spacing_xy))[1]
         return np.where(where, reach, 0.0)
     kk = params.k + 1  # the point itself and its k neighbours
+    if name == "sigma":
+        patched = where if sample is None else where & sample
+        out = (np.where(patched, np.inf, 0.0) if n < kk
+               else kth_distance_within(local, kk, patched, allowed))
+        if voxel_with_sigma(params):
+            cut = ladder or ladder_pieces(local, LOW_PIECE_POINTS, SIGMA_ROUND_LADDER_START)
+            out = np.maximum(out, np.where(where, cut[1], 0.0))
+        return out
     if n < kk:
         return np.where(where, np.inf, 0.0)
     out = kth_distance_within(local, kk, where, allowed)

@@ -1001,7 +1001,9 @@ def process_tiled(
         dropped = None if first is None else dropped_points(first.flags)
         done, rest = stages[:lead], stages[lead:]  # run over the whole file / still to run
         estimated: dict[int, dict[str, Any]] = {}
+        rounds: list[dict[str, Any]] = []
         while (i := next_whole_file_step(rest, tiles.prepared)) is not None:
+            t_round = time.perf_counter()
             settle = settles(rest, i)
             prepass = pending_prepass(rest, tiles.prepared) == i
             memo = HaloMemo()
@@ -1020,11 +1022,15 @@ def process_tiled(
                 pinned, info = pin_stage(tiles, rest[i], values, work / "values")
                 rest = [*rest[:i], pinned, *rest[i + 1:]]
             estimated[len(done) + i] = {**estimated.get(len(done) + i, {}), **info}
+            rounds.append({"stage": rest[i].detector,
+                           "round": "pre-pass" if prepass else "estimate",
+                           "seconds": round(time.perf_counter() - t_round, 4)})
             if settler is not None:
                 first = settler.finish()
                 dropped = dropped_points(first.flags)
                 done, rest = [*done, *rest[:i]], rest[i:]
         stages = [*done, *rest]
+        t_tiles = time.perf_counter()
         results, memo = [], HaloMemo()
         for k, cell in enumerate(sorted(tiles.cells)):
             path = work / "results" / result_name(cell)
@@ -1052,5 +1058,6 @@ def process_tiled(
         shutil.rmtree(work, ignore_errors=True)
     stats["seconds"] = {"cut": round(t_cut - t0, 4), "detect": round(t_run - t_cut, 4),
                         "write": round(time.perf_counter() - t_run, 4),
-                        "total": round(time.perf_counter() - t0, 4)}
+                        "total": round(time.perf_counter() - t0, 4),
+                        "whole_file_rounds": rounds, "tiles": round(t_run - t_tiles, 4)}
     return stats

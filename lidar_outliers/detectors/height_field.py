@@ -2,8 +2,10 @@
 sigma (:mod:`algorithms.height_field`).
 
 It runs tile by tile: ``sigma: auto`` and the low test's horizontal spacing and voxel size are
-measured over the whole cloud first (:class:`~lidar_outliers.detectors.base.Estimate`: sigma
-and the spacing in one round, from the same sample, then the voxel size), the low test's grids
+measured over the whole cloud first (:class:`~lidar_outliers.detectors.base.Estimate`: in one
+round, sigma and the spacing from the same sample and the small-piece ladder the voxel size is
+chosen from from every point; with sigma given, the spacing and then the voxel size), the low
+test's grids
 start at the file's lower-left corner in a tile as in the whole cloud, and each point reports
 how far its result reached (:func:`algorithms.height_field.tile_reach`).
 """
@@ -42,12 +44,28 @@ def reach(cloud: Cloud, params: HeightFieldParameters, where: np.ndarray,
           allowed: np.ndarray | None = None) -> np.ndarray:
     from algorithms.height_field import LOW_PIECE_POINTS, pending_estimate, tile_reach
 
-    if pending_estimate(params) == "voxel":
+    pending = pending_estimate(params)
+    if pending == "voxel":
         return np.where(where, LADDER(cloud, LOW_PIECE_POINTS, float(params.spacing_xy))[1],
                         0.0)
-    if pending_estimate(params) in ("sigma", "spacing_xy"):  # only the sample's are computed
+    if pending == "spacing_xy":  # only the sample's are computed
         where = where & sigma_points(cloud)
+    if pending == "sigma":  # the sample's residuals and distances, every point's ladder
+        return tile_reach(cloud.xyz, params, where, grid_origin(cloud), allowed,
+                          sample=sigma_points(cloud), ladder=sigma_round_ladder(cloud, params))
     return tile_reach(cloud.xyz, params, where, grid_origin(cloud), allowed)
+
+
+def sigma_round_ladder(cloud: Cloud, params: HeightFieldParameters
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ladder the round that estimates ``sigma`` cuts (:func:`algorithms.height_field.
+    voxel_with_sigma`; None when it cuts none), cut once for a tile's reach check and values
+    (:data:`~lidar_outliers.detectors.detached.LADDER`)."""
+    from algorithms.height_field import LOW_PIECE_POINTS, SIGMA_ROUND_LADDER_START, voxel_with_sigma
+
+    if not voxel_with_sigma(params):
+        return None
+    return LADDER(cloud, LOW_PIECE_POINTS, SIGMA_ROUND_LADDER_START)
 
 
 def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
@@ -59,34 +77,22 @@ def values(cloud: Cloud, params: HeightFieldParameters) -> np.ndarray:
     if pending_estimate(params) in ("sigma", "spacing_xy"):  # the sample's values alone
         sample = sigma_points(cloud)
         wanted = sample if wanted is None else wanted & sample
-    return estimate_values(cloud.xyz, params, grid_origin(cloud), wanted)
+    ladder = sigma_round_ladder(cloud, params)
+    return estimate_values(cloud.xyz, params, grid_origin(cloud), wanted,
+                           ladder=None if ladder is None else ladder[0])
 
 
 def pin(params: HeightFieldParameters,
         parts: list[np.ndarray]) -> tuple[HeightFieldParameters, dict[str, Any]]:
-    """``sigma: auto`` from every point's full-patch residual, as the whole-cloud run makes it
-    (with the low test's spacing from the same round when that is "auto" too); then the low
-    test's spacing and voxel size."""
-    from dataclasses import replace
-
-    from algorithms.detached import xy_spacing_of_values
-    from algorithms.height_field import (
-        pending_estimate,
-        pin_low_estimate,
-        sigma_of_residuals,
-        spacing_with_sigma,
-    )
+    """``sigma: auto`` from every point's full-patch residual, as the whole-cloud run makes it,
+    with the low test's spacing and voxel size from the same round when they are "auto" too
+    (:func:`algorithms.height_field.pin_sigma_round`); else the low test's spacing, then its
+    voxel size."""
+    from algorithms.height_field import pending_estimate, pin_low_estimate, pin_sigma_round
 
     if pending_estimate(params) != "sigma":
         return pin_low_estimate(params, parts)
-    both = spacing_with_sigma(params)  # (n, 2): residuals, XY distances
-    sigma = sigma_of_residuals([p[:, 0] for p in parts] if both else parts)
-    if not sigma > 0:  # as detect_height_field: a perfect surface leaves rounding only
-        sigma = float(np.finfo(float).eps)
-    pinned = replace(params, sigma=sigma)
-    if both:
-        pinned = replace(pinned, spacing_xy=xy_spacing_of_values([p[:, 1] for p in parts]))
-    return pinned, {"sigma": sigma, "sigma_source": "auto"}
+    return pin_sigma_round(params, parts)
 
 
 def pending(params: HeightFieldParameters) -> bool:

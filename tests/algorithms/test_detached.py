@@ -242,6 +242,24 @@ def test_ladder_cut_on_voxels_matches_pieces_of_the_points_at_every_size():
     assert empty[0].shape == empty[1].shape == (0,)
 
 
+def test_a_ladder_from_a_later_start_is_the_bits_of_the_finest_shifted():
+    """The ladder of any start is a suffix of the ladder from its finest size: the bits cut
+    from 0 and shifted are those cut from the start, and they choose the same voxel size."""
+    rng = np.random.default_rng(14)
+    local = np.vstack([rough_terrain(14, 3000), rng.normal([20, 20, 2], 0.3, (40, 3))])
+    local[:, 2] += 20
+    finest = ladder_pieces(local, 200, 0.0)[0]
+    for start in (0.0, 0.1, 0.13, 0.3, 0.9, 5.0, 16.0):
+        cut = ladder_pieces(local, 200, start)[0]
+        shift = len(voxel_ladder(0.0)) - len(voxel_ladder(start))
+        np.testing.assert_array_equal(finest.astype(np.int64) >> shift, cut.astype(np.int64))
+        assert (scale_of_ladder([finest[:1000], finest[1000:]], 200, start, cut_from=0.0)
+                == scale_of_ladder([cut], 200, start)
+                == (surface_scale(local, 200, start, np.zeros(3))[0] or 0.0))
+    with pytest.raises(ValueError, match="holds no ladder"):
+        scale_of_ladder([finest], 200, 0.05, cut_from=0.1)
+
+
 def test_ladder_sizes_double_every_second_step():
     sizes = voxel_ladder(0.3)
     assert sizes[0] >= 0.3 > sizes[0] / np.sqrt(2) * 1.0001

@@ -481,12 +481,14 @@ def test_height_field_seen_again_tiled_equals_whole(scene, tmp_path):
 
 
 
-def test_sigma_and_the_low_tests_spacing_are_fixed_in_one_round(street, tmp_path, monkeypatch):
-    """Both come from the same sample by file position: one round over the tiles gives each
-    sample point its residual and its XY distance, and pins both as the whole run measures
-    them."""
+def test_sigma_and_the_low_tests_spacing_and_voxel_are_fixed_in_one_round(
+        street, tmp_path, monkeypatch):
+    """Sigma and the spacing come from the same sample by file position, the voxel size from
+    every point's small-piece ladder cut from its finest size: one round over the tiles gives
+    each sample point its residual and its XY distance and every point its ladder, and pins
+    all three as the whole run measures them."""
     import algorithms.height_field as hf
-    from algorithms.detached import relative
+    from algorithms.detached import relative, voxel_size
     from lidar_outliers.detectors.detached import grid_origin
     from lidar_outliers.detectors.height_field import sigma_points
     from lidar_outliers.lasio import read_cloud
@@ -498,11 +500,13 @@ def test_sigma_and_the_low_tests_spacing_are_fixed_in_one_round(street, tmp_path
     tiles = partition(street, tmp_path / "cells", STREET_TILE)
     results = [run_tile(tiles, cell, params, stages, values_of=0)
                for cell in sorted(tiles.cells)]
-    assert all(r["values"].shape == (len(r["index"]), 2) for r in results)
+    assert all(r["values"].shape == (len(r["index"]), 3) for r in results)
     pinned, info = pin_stage(tiles, stages[0], results, tmp_path / "values")
     fixed = pinned.parameters()
-    assert info["sigma_source"] == "auto" and fixed.voxel == "auto"
+    assert info["sigma_source"] == "auto" and hf.pending_estimate(fixed) is None
     cloud = read_cloud(street)
     local = relative(cloud.xyz, grid_origin(cloud))
     assert fixed.spacing_xy == pytest.approx(hf.sample_spacing(local, sigma_points(cloud)),
                                              rel=1e-12)
+    whole = voxel_size(local, hf.LOW_PIECE_POINTS, float(fixed.spacing_xy), "auto")
+    assert fixed.voxel == (0.0 if whole is None else whole)
