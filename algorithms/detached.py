@@ -567,9 +567,9 @@ def scale_of_ladder(parts: Iterable[np.ndarray], piece_points: int, start: float
     values are ``parts`` (NaN: not in the cloud); 0.0 where it chooses none or the cloud has at
     most ``piece_points`` points (as :func:`detect_detached` leaves the test out).
 
-    ``cut_from``: the start of the ladder the values were cut at, when it is not ``start``
-    (at most ``start``, which may lie at most at ``LARGEST_VOXEL``): the ladder from ``start``
-    is its suffix, so each value's bits are shifted by the sizes before ``start``."""
+    ``cut_from``: the start the values' ladder was cut from, when not ``start`` (``cut_from``
+    <= ``start`` <= ``LARGEST_VOXEL``): the ladder from ``start`` is a suffix of that one, so
+    each value's bits are shifted by the sizes before ``start``."""
     sizes = voxel_ladder(start)
     shift = 0
     if cut_from is not None:

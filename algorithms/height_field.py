@@ -555,7 +555,8 @@ def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray
         out = (np.where(patched, np.inf, 0.0) if n < kk
                else kth_distance_within(local, kk, patched, allowed))
         if voxel_with_sigma(params):
-            cut = ladder or ladder_pieces(local, LOW_PIECE_POINTS, SIGMA_ROUND_LADDER_START)
+            cut = ladder if ladder is not None else ladder_pieces(
+                local, LOW_PIECE_POINTS, SIGMA_ROUND_LADDER_START)
             out = np.maximum(out, np.where(where, cut[1], 0.0))
         return out
     if n < kk:
