@@ -36,9 +36,12 @@ _MIN_RUN = 64
 COMPILED_MIN_WINDOWS = 4_000_000
 
 
-def use_compiled(windows: int) -> bool:
-    """Whether to run the compiled smoother for ``windows`` windows: when they are enough to
-    repay numba's import, or numba is loaded already. Both give the same bits."""
+def use_compiled(windows: int, given: bool | None = None) -> bool:
+    """Whether to run the compiled smoother for ``windows`` windows: as ``given`` when the
+    caller chose, else when they are enough to repay numba's import, or numba is loaded
+    already. Both give the same bits."""
+    if given is not None:
+        return given
     return windows >= COMPILED_MIN_WINDOWS or "numba" in sys.modules
 
 
@@ -284,7 +287,7 @@ def window_differences(
     t = np.ascontiguousarray(t, dtype=np.float64)
     sigma = np.ascontiguousarray(sigma, dtype=np.float64)
     targets = np.asarray(targets, dtype=np.int64)
-    if sigma.size == 0 and (use_compiled(targets.size) if compiled is None else compiled):
+    if sigma.size == 0 and use_compiled(targets.size, compiled):
         from algorithms.temporal.compiled import window_differences_compiled
 
         z_rows = np.asarray(z, dtype=np.float64).T  # a view: the kernel takes any strides
@@ -306,7 +309,7 @@ def segment_differences(
     Each row's window follows ``window_bounds``; equal to ``window_differences`` with those
     windows, without the (n,) window arrays. ``compiled`` as in ``window_differences``.
     """
-    if use_compiled(t.size) if compiled is None else compiled:
+    if use_compiled(t.size, compiled):
         from algorithms.temporal.compiled import segment_differences_compiled
 
         dz, sigma_dz = segment_differences_compiled(
