@@ -82,7 +82,13 @@ TILE_POINTS = 600_000
 #: ``detached`` (2.8 GB at 4 M points); in tiles the 4 M points took 1.8x the whole run's time.
 WHOLE_CLOUD_POINTS = 2_000_000
 MANIFEST = "tiles.json"
-#: A tile whose points reach further than its halo is run again with the halo times this.
+#: A tile whose points reach further than its halo is run again with a halo this much wider
+#: than their reach (a region a little wider than needed costs less than a third run) ...
+NEED_MARGIN = 1.1
+#: ... and at least this many times its halo, so that a reach that grows with the region (a
+#: piece cut at the region's edge) is caught up with in a few runs.
+HALO_STEP = 1.25
+#: A tile whose points need more than the points at hand is run again with its halo times this.
 HALO_GROWTH = 2.0
 
 
@@ -771,11 +777,12 @@ def reach_needed(
 
 def wider_halos(halos: list[float], needed: list[float]) -> list[float] | None:
     """The halos to run a region again with when a stage needs more than its halo (each such
-    one grows at least :data:`HALO_GROWTH` times), None when every stage's fits."""
+    one grows to its need with :data:`NEED_MARGIN`, at least :data:`HALO_STEP` times), None
+    when every stage's fits."""
     if not any(n > h for n, h in zip(needed, halos, strict=True)):
         return None
     return [h if not n > h else
-            max(h * HALO_GROWTH, n * 1.01) if math.isfinite(n) else unbounded_growth(h)
+            max(h * HALO_STEP, n * NEED_MARGIN) if math.isfinite(n) else unbounded_growth(h)
             for h, n in zip(halos, needed, strict=True)]
 
 

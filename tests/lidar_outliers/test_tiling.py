@@ -16,6 +16,8 @@ from lidar_outliers.lasio import inspect_las
 from lidar_outliers.params import PipelineParams
 from lidar_outliers.tiling import (
     HALO_GROWTH,
+    HALO_STEP,
+    NEED_MARGIN,
     POINT_DTYPE,
     HaloMemo,
     TileError,
@@ -386,8 +388,8 @@ def test_halo_memo_keeps_the_widest_need_and_never_more_than_a_tile_used():
 def test_halos_grow_where_a_stage_needs_more():
     assert wider_halos([2.0, 3.0], [1.0, -math.inf]) is None
     assert wider_halos([2.0, 3.0], [1.0, math.nan]) is None  # as before: nothing measured
-    assert wider_halos([2.0, 3.0], [2.5, 3.0]) == [2.0 * HALO_GROWTH, 3.0]
-    assert wider_halos([2.0, 3.0], [9.0, 1.0]) == [9.0 * 1.01, 3.0]
+    assert wider_halos([2.0, 3.0], [2.1, 3.0]) == [2.0 * HALO_STEP, 3.0]
+    assert wider_halos([2.0, 3.0], [9.0, 1.0]) == [9.0 * NEED_MARGIN, 3.0]
     assert wider_halos([2.0, 3.0], [1.0, math.inf]) == [2.0, 3.0 * HALO_GROWTH]
 
 
