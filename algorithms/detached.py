@@ -518,10 +518,8 @@ def _finest_voxels(local: np.ndarray, size: float
     voxels, inverse = distinct_voxels(ijk)
     stats = np.empty((len(voxels), 5))
     stats[:, 0] = np.bincount(inverse, minlength=len(voxels))
-    stats[:, 1:3] = np.inf
-    stats[:, 3:5] = -np.inf
-    np.minimum.at(stats[:, 1:3], inverse, local[:, :2])
-    np.maximum.at(stats[:, 3:5], inverse, local[:, :2])
+    stats[:, 1:] = _xy_bounds(inverse, len(voxels), local[:, 0], local[:, 1], local[:, 0],
+                              local[:, 1])
     return voxels, inverse, stats
 
 
@@ -537,11 +535,22 @@ def _grouped_stats(stats: np.ndarray, group: np.ndarray, groups: int) -> np.ndar
     """[points, x min, y min, x max, y max] of each group of rows of ``stats``."""
     out = np.empty((groups, 5))
     out[:, 0] = np.bincount(group, weights=stats[:, 0], minlength=groups)
-    out[:, 1:3] = np.inf
-    out[:, 3:5] = -np.inf
-    np.minimum.at(out[:, 1:3], group, stats[:, 1:3])
-    np.maximum.at(out[:, 3:5], group, stats[:, 3:5])
+    out[:, 1:] = _xy_bounds(group, groups, *stats[:, 1:].T)
     return out
+
+
+def _xy_bounds(group: np.ndarray, groups: int, x_low: np.ndarray, y_low: np.ndarray,
+               x_high: np.ndarray, y_high: np.ndarray) -> np.ndarray:
+    """(groups, 4) [x min, y min, x max, y max] of each group of rows: the least of the
+    ``_low`` values and the largest of the ``_high`` ones (+-inf for an empty group). One
+    contiguous column at a time: ``np.minimum.at`` then takes numpy's fast path (about 30
+    times faster than on the strided columns of a 2-D array)."""
+    out = np.empty((4, groups))
+    out[:2], out[2:] = np.inf, -np.inf
+    for row, values, reduce in ((0, x_low, np.minimum), (1, y_low, np.minimum),
+                                (2, x_high, np.maximum), (3, y_high, np.maximum)):
+        reduce.at(out[row], group, np.ascontiguousarray(values))
+    return out.T
 
 
 def _small_voxel_pieces(voxels: np.ndarray, stats: np.ndarray, piece_points: int
