@@ -173,3 +173,20 @@ def first_other_points(dist: np.ndarray, idx: np.ndarray, own: np.ndarray, n: in
                 tied[r] = dist[r, c] == kth and kth <= radius
                 break
     return tied
+
+
+@njit(cache=True, parallel=True)
+def any_near_apart(values: np.ndarray, idx: np.ndarray, near: np.ndarray,
+                   least: float) -> np.ndarray:
+    """(m,) bool: row r of a neighbour table (``idx``, ``near``, each (m, k)) holds a neighbour
+    marked near whose value differs from the row's own, ``values[r]``, by at least ``least``
+    (``values`` (m,) own then indexed by ``idx``). What ``np.any(near & (|values[idx] -
+    values[:, None]| >= least), axis=1)`` gives, without its (m, k) temporaries."""
+    out = np.zeros(idx.shape[0], dtype=np.bool_)
+    for r in prange(idx.shape[0]):
+        own = values[r]
+        for c in range(idx.shape[1]):
+            if near[r, c] and abs(values[idx[r, c]] - own) >= least:
+                out[r] = True
+                break
+    return out

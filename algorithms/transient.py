@@ -101,8 +101,9 @@ KNN_BATCH = 262_144
 def neighbour_table(xyz: np.ndarray, k: int, radius: float, rows: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray]:
     """(m, k) int64 indices of the k nearest other points of each of the points ``rows`` (None:
-    every point, m = n) and (m, k) bool "within radius" (False also for the padding of clouds
-    with fewer than k + 1 points).
+    every point, m = n) and (m, k) bool "within radius". Only the neighbours within ``radius``
+    are read, so the search stops there: the entries beyond it are padding (index 0, False),
+    as for clouds with fewer than k + 1 points.
 
     Points as far as the k-th (within ``radius``) are taken in index order
     (:func:`_tied_neighbours`), so the table is the same in any part of the cloud that holds
@@ -120,7 +121,8 @@ def neighbour_table(xyz: np.ndarray, k: int, radius: float, rows: np.ndarray | N
     tree = neighbour_tree(xyz)
     for s in range(0, m, KNN_BATCH):
         batch = rows[s:s + KNN_BATCH]
-        d, j = query_nearest(tree, xyz[batch], kq)
+        d, j = query_nearest(tree, xyz[batch], kq,
+                             distance_upper_bound=np.nextafter(radius, np.inf))
         d, j = d.reshape(-1, kq), j.reshape(-1, kq).astype(np.int64, copy=False)
         # each point itself is dropped (not necessarily column 0 when points coincide)
         tied = first_other_points(d, j, batch, n, k, radius, idx[s:s + len(j)],
@@ -158,8 +160,10 @@ def persistent_points(gps_time: np.ndarray, idx: np.ndarray, near: np.ndarray,
 
     The times are compared as given (not moved to the cloud's first time), so a run over any
     part of the file computes the same differences."""
-    dt = np.abs(gps_time[idx] - gps_time[:, None])
-    return np.any(near & (dt >= min_dt), axis=1)
+    from algorithms.neighbours import any_near_apart
+
+    return any_near_apart(np.ascontiguousarray(gps_time, dtype=np.float64), idx, near,
+                          float(min_dt))
 
 
 def scan_line_neighbours(gps_time: np.ndarray, source: np.ndarray | None
@@ -252,7 +256,6 @@ def revisited_clusters(xyz: np.ndarray, persistent: np.ndarray, single: np.ndarr
     """(n_comp,) bool: the cluster's place was seen at another moment (step 4 of the module
     docstring): at least half of its scan-line neighbours outside it are persistent, and at
     least half of its points have a persistent point within ``radius`` in plan."""
-    from scipy.spatial import cKDTree
 
     n = len(xyz)
     cluster = np.full(n, -1, dtype=np.int64)
@@ -269,13 +272,21 @@ def revisited_clusters(xyz: np.ndarray, persistent: np.ndarray, single: np.ndarr
     seen = np.flatnonzero(persistent)
     if seen.size == 0:
         return np.zeros(n_comp, dtype=bool)
-    # the nearest persistent point within radius (inclusive) is enough: no ball of them
-    nearest, _ = cKDTree(xyz[seen, :2]).query(
-        xyz[single, :2], k=1, distance_upper_bound=np.nextafter(radius, np.inf), workers=-1)
-    covered = nearest <= radius
+    covered = covered_in_plan(xyz[seen, :2], xyz[single, :2], radius)
     size = np.bincount(label, minlength=n_comp)
     under = 2.0 * np.bincount(label, weights=covered, minlength=n_comp) >= size
     return beside & under
+
+
+def covered_in_plan(seen_xy: np.ndarray, xy: np.ndarray, radius: float) -> np.ndarray:
+    """(m,) bool: a point of ``seen_xy`` lies within ``radius`` (inclusive) of each of ``xy``
+    in plan. The nearest one within reach is enough: counting every point of the ball costs
+    thousands a query under a wall."""
+    from algorithms.neighbours import neighbour_tree
+
+    nearest, _ = neighbour_tree(seen_xy).query(
+        xy, k=1, distance_upper_bound=np.nextafter(radius, np.inf), workers=-1)
+    return nearest <= radius
 
 
 @dataclass(frozen=True)
@@ -400,7 +411,6 @@ def point_facts(xyz: np.ndarray, gps_time: np.ndarray, *, k: int, radius: float,
     point within ``radius`` in plan, as :func:`revisited_clusters` counts). Exact for the points
     with every point within ``2 * radius`` of them at hand (a tile's region), in the frame and
     order the whole cloud's run uses."""
-    from scipy.spatial import cKDTree
 
     arr = np.asarray(xyz, dtype=np.float64)
     n = len(arr)
@@ -413,8 +423,7 @@ def point_facts(xyz: np.ndarray, gps_time: np.ndarray, *, k: int, radius: float,
     touches[single] = touching_persistent(idx[single], near[single], persistent)
     seen = np.flatnonzero(persistent)
     if seen.size and single.size:
-        covered[single] = cKDTree(arr[seen, :2]).query_ball_point(
-            arr[single, :2], radius, return_length=True) > 0
+        covered[single] = covered_in_plan(arr[seen, :2], arr[single, :2], radius)
     return {"persistent": persistent, "touches": touches, "covered": covered}
 
 

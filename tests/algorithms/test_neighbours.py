@@ -8,6 +8,7 @@ from scipy.spatial import cKDTree
 
 from algorithms.neighbours import (
     ORDERED_QUERIES_MIN,
+    any_near_apart,
     neighbour_tree,
     query_nearest,
     space_order,
@@ -66,3 +67,16 @@ def test_small_query_sets_are_asked_as_they_come() -> None:
     want = cKDTree(xyz).query(xyz[:100], k=5)
     got = query_nearest(neighbour_tree(xyz), xyz[:100], 5)
     np.testing.assert_array_equal(got[0], want[0])
+
+
+def test_any_near_apart_is_the_numpy_expression():
+    rng = np.random.default_rng(3)
+    m, k = 2000, 7
+    values = np.round(rng.uniform(0, 5, m), 1)  # ties at the bound, exactly
+    values[::97] = np.nan
+    idx = rng.integers(0, m, (m, k))
+    near = rng.random((m, k)) < 0.4
+    slow = np.any(near & (np.abs(values[idx] - values[:, None]) >= 0.5), axis=1)
+    fast = any_near_apart(values, idx, near, 0.5)
+    np.testing.assert_array_equal(fast, slow)
+    assert slow.any() and not slow.all()
