@@ -256,7 +256,6 @@ def revisited_clusters(xyz: np.ndarray, persistent: np.ndarray, single: np.ndarr
     """(n_comp,) bool: the cluster's place was seen at another moment (step 4 of the module
     docstring): at least half of its scan-line neighbours outside it are persistent, and at
     least half of its points have a persistent point within ``radius`` in plan."""
-
     n = len(xyz)
     cluster = np.full(n, -1, dtype=np.int64)
     cluster[single] = label
