@@ -551,9 +551,8 @@ def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray
         return np.where(where, reach, 0.0)
     kk = params.k + 1  # the point itself and its k neighbours
     if name == "sigma":
-        patched = where if sample is None else where & sample
-        out = (np.where(patched, np.inf, 0.0) if n < kk
-               else kth_distance_within(local, kk, patched, allowed))
+        out = kth_distance_within(local, kk, where if sample is None else where & sample,
+                                  allowed)
         if voxel_with_sigma(params):
             cut = ladder if ladder is not None else ladder_pieces(
                 local, LOW_PIECE_POINTS, SIGMA_ROUND_LADDER_START)

@@ -410,7 +410,6 @@ def point_facts(xyz: np.ndarray, gps_time: np.ndarray, *, k: int, radius: float,
     point within ``radius`` in plan, as :func:`revisited_clusters` counts). Exact for the points
     with every point within ``2 * radius`` of them at hand (a tile's region), in the frame and
     order the whole cloud's run uses."""
-
     arr = np.asarray(xyz, dtype=np.float64)
     n = len(arr)
     touches, covered = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)

@@ -3,11 +3,10 @@ sigma (:mod:`algorithms.height_field`).
 
 It runs tile by tile: ``sigma: auto`` and the low test's horizontal spacing and voxel size are
 measured over the whole cloud first (:class:`~lidar_outliers.detectors.base.Estimate`: in one
-round, sigma and the spacing from the same sample and the small-piece ladder the voxel size is
-chosen from from every point; with sigma given, the spacing and then the voxel size), the low
-test's grids
-start at the file's lower-left corner in a tile as in the whole cloud, and each point reports
-how far its result reached (:func:`algorithms.height_field.tile_reach`).
+round, sigma and the spacing from the same sample and, from every point, the small-piece ladder
+the voxel size is chosen from; with sigma given, the spacing and then the voxel size), the low
+test's grids start at the file's lower-left corner in a tile as in the whole cloud, and each
+point reports how far its result reached (:func:`algorithms.height_field.tile_reach`).
 """
 
 from __future__ import annotations
