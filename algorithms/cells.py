@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from algorithms.columns import column_max, column_min
+
 #: Keys and key + offset stay below this (int64 with room for the offsets).
 KEY_LIMIT = 2 ** 62
 
@@ -31,14 +33,14 @@ def cell_keys(ijk: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]:
     ijk = np.asarray(ijk, dtype=np.int64)
     if len(ijk) == 0:
         return np.zeros(0, dtype=np.int64), np.array([1, 1, 1], dtype=np.int64)
-    local = ijk - ijk.min(axis=0)
+    local = ijk - column_min(ijk)
     if _cells_in_grid(local, reach) >= KEY_LIMIT:
         local = np.column_stack([_squeezed_axis(local[:, a], reach) for a in range(3)])
         if _cells_in_grid(local, reach) >= KEY_LIMIT:
             raise ValueError("too many distinct, mutually distant cells for one int64 key: "
                              "use larger cells")
     padded = local + reach
-    dims = padded.max(axis=0) + reach + 1
+    dims = column_max(padded) + reach + 1
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     return padded @ strides, strides
 
@@ -47,7 +49,7 @@ def _cells_in_grid(local: np.ndarray, reach: int) -> int:
     """Cells of the grid padded by ``reach`` around the indices ``local`` (min 0), as a Python
     int (no overflow)."""
     total = 1
-    for extent in local.max(axis=0):
+    for extent in column_max(local):
         total *= int(extent) + 2 * reach + 1
     return total
 

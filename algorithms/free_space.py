@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from algorithms.columns import column_max, column_min
 from algorithms.errors import ParameterError
 from algorithms.jit import njit, prange
 from algorithms.result import DetectorResult
@@ -126,8 +127,8 @@ def _headings(traj: np.ndarray) -> np.ndarray:
 def _grid(xyz: np.ndarray, cell: float, radius: float) -> tuple[np.ndarray, float, np.ndarray]:
     """Origin (3,), cell edge and shape (3,) of a grid holding every point's radius-ball (the
     edge is doubled until the grid has at most MAX_CELLS cells)."""
-    lo = xyz.min(axis=0) - radius - 1e-6
-    ext = xyz.max(axis=0) + radius + 1e-6 - lo
+    lo = column_min(xyz) - radius - 1e-6
+    ext = column_max(xyz) + radius + 1e-6 - lo
     while True:
         shape = np.floor(ext / cell).astype(np.int64) + 1
         if int(np.prod(shape)) <= MAX_CELLS:

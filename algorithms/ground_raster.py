@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from algorithms.columns import column_max, column_min
 from algorithms.jit import njit
 
 #: Openings at most in the progressive terrace check (step 6); larger radii are stepped evenly.
@@ -37,14 +38,14 @@ class RasterGeometry:
     ) -> RasterGeometry:
         """Cells ``spacings`` mean point spacings wide (mean spacing = sqrt(area / n)), at least
         ``min_cell`` metres."""
-        ext = np.maximum(xy.max(axis=0) - xy.min(axis=0), 1e-9)
+        ext = np.maximum(column_max(xy) - column_min(xy), 1e-9)
         return cls.at(xy, max(spacings * float(np.sqrt(ext[0] * ext[1] / xy.shape[0])), min_cell))
 
     @classmethod
     def at(cls, xy: np.ndarray, cell: float) -> RasterGeometry:
         """Cells of ``cell`` metres from the lower-left corner of the points' extent."""
-        lo = xy.min(axis=0)
-        ext = np.maximum(xy.max(axis=0) - lo, 1e-9)
+        lo = column_min(xy)
+        ext = np.maximum(column_max(xy) - lo, 1e-9)
         shape = (ext / cell).astype(np.int64) + 1
         ij = ((xy - lo) / cell).astype(np.int64)
         return cls(lo, cell, (int(shape[0]), int(shape[1])), ij[:, 0] * shape[1] + ij[:, 1])

@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from algorithms.columns import column_max, column_min
 from algorithms.ground_raster import RasterGeometry
 from algorithms.jit import njit
 from algorithms.tin import delaunay, vertex_triangles
@@ -31,7 +32,7 @@ def centre(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Returns ``xy`` (n, 2) and ``z`` (n,), both float64.
     """
-    lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
     xy = xyz[:, :2] - 0.5 * (lo + hi)
     z = xyz[:, 2] - z_offset(xyz)
     return np.ascontiguousarray(xy), np.ascontiguousarray(z)

@@ -57,6 +57,7 @@ from typing import Literal
 import numpy as np
 
 from algorithms.checks import check_xyz
+from algorithms.columns import column_min
 from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
 from algorithms.stats import MAD_TO_SIGMA, strided_sample
@@ -213,10 +214,10 @@ def floor_cells(local: np.ndarray, index: np.ndarray, cell: float,
 
     if index.size == 0:
         return index
-    corner = local[index, :2].min(axis=0) if origin is None else origin
+    corner = column_min(local[index, :2]) if origin is None else origin
     lowest = lowest_per_cell(local, index, cell, corner)
     ij = grid_index(local[lowest], cell, corner)
-    ij += 1 - ij.min(axis=0)
+    ij += 1 - column_min(ij)
     width = int(ij[:, 1].max()) + 2
     key = ij[:, 0] * width + ij[:, 1]
     order = np.argsort(key)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from algorithms.cells import cell_keys, forward_offsets, offset_keys
+from algorithms.columns import column_min
 from algorithms.jit import njit
 
 #: Cell edge as a share of the radius: the diagonal sqrt(3) x edge stays under the radius.
@@ -37,7 +38,7 @@ def radius_components(xyz: np.ndarray, radius: float) -> tuple[int, np.ndarray]:
     if not radius > 0:
         raise ValueError("radius must be > 0")
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
-    ijk = np.floor((xyz - xyz.min(axis=0)) / (radius * CELL_SHARE)).astype(np.int64)
+    ijk = np.floor((xyz - column_min(xyz)) / (radius * CELL_SHARE)).astype(np.int64)
     key, strides = cell_keys(ijk, reach=LINK_REACH)
     order = np.argsort(key, kind="stable")
     keys, starts = np.unique(key[order], return_index=True)

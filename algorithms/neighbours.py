@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from algorithms.columns import column_min
 from algorithms.jit import njit, prange
 
 #: Metres: queries are asked cell by cell of this XY edge (:func:`query_nearest`).
@@ -34,7 +35,7 @@ def space_order(points: np.ndarray) -> np.ndarray:
     """(m,) a permutation of ``points`` (m, d >= 2) that groups them by XY cell of
     :data:`QUERY_CELL` metres (cells row by row)."""
     ij = np.floor(points[:, :2] / QUERY_CELL)
-    ij -= ij.min(axis=0)
+    ij -= column_min(ij)
     key = ij[:, 0] * (ij[:, 1].max() + 1.0) + ij[:, 1]  # exact below 2**53 cells
     return np.argsort(key, kind="stable")
 

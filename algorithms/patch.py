@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from algorithms.checks import check_xyz
+from algorithms.columns import column_min
 from algorithms.errors import ParameterError
 from algorithms.fit_outcome import (
     COLLINEAR,
@@ -114,7 +115,7 @@ def frame_shift(xyz: np.ndarray) -> np.ndarray:
     differently)."""
     if not xyz.size or float(np.abs(xyz).max()) <= LOCAL_EXTENT:
         return np.zeros(3)
-    return np.floor(xyz.min(axis=0) / SHIFT_GRID) * SHIFT_GRID
+    return np.floor(column_min(xyz) / SHIFT_GRID) * SHIFT_GRID
 
 
 def detect_patch(

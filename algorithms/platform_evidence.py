@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from algorithms.columns import column_min
+
 #: Beams within this angle of nadir count as looking down (scan half-angles of airborne
 #: scanners are 15-40 degrees, plus attitude).
 NADIR_CONE_DEG = 45.0
@@ -203,7 +205,7 @@ def occupied_density(xy: np.ndarray, cell: float = 1.0) -> float | None:
     xy = np.asarray(xy, dtype=np.float64)
     if xy.shape[0] == 0:
         return None
-    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
+    ij = np.floor((xy - column_min(xy)) / cell).astype(np.int64)
     key = ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1]
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     return float(np.median(counts[inverse.ravel()]) / (cell * cell))

@@ -16,6 +16,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from algorithms.columns import column_max, column_min
+
 
 def grid_cells(xy: np.ndarray, cell_size: float) -> tuple[np.ndarray, int]:
     """Linear index of the square XY cell of each point.
@@ -38,7 +40,7 @@ def grid_cells(xy: np.ndarray, cell_size: float) -> tuple[np.ndarray, int]:
     xy = np.asarray(xy, dtype=np.float64)
     if xy.shape[0] == 0:
         return np.zeros(0, dtype=np.int64), 1
-    origin = xy.min(axis=0)
+    origin = column_min(xy)
     ij = np.floor((xy - origin) / cell_size).astype(np.int64)
     n_columns = int(ij[:, 0].max()) + 1
     return ij[:, 1] * n_columns + ij[:, 0], n_columns
@@ -99,8 +101,8 @@ def cell_counts(points: np.ndarray, edge: float) -> np.ndarray:
     (corner at their lowest coordinates)."""
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64)
-    ij = np.floor((points - points.min(axis=0)) / edge).astype(np.int64)
-    dims = ij.max(axis=0) + 1
+    ij = np.floor((points - column_min(points)) / edge).astype(np.int64)
+    dims = column_max(ij) + 1
     if float(np.prod(dims.astype(np.float64))) < 2.0**62:  # one integer key per cell
         key = np.ravel_multi_index(ij.T, tuple(int(v) for v in dims))
         _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)

@@ -19,6 +19,7 @@ import numpy as np
 import startinpy
 from scipy.spatial import Delaunay
 
+from algorithms.columns import column_max, column_min
 from algorithms.jit import njit
 
 try:  # an optional extra (`pip install .[fast-tin]`): Triangle is free for non-commercial use only
@@ -72,8 +73,8 @@ def _startin_triangles(xy: np.ndarray) -> np.ndarray | None:
 
 def morton_order(xy: np.ndarray) -> np.ndarray:
     """Order of the points along the Z-order (Morton) curve of a 2^16 x 2^16 grid."""
-    lo = xy.min(axis=0)
-    span = float((xy.max(axis=0) - lo).max())
+    lo = column_min(xy)
+    span = float((column_max(xy) - lo).max())
     cells = ((xy - lo) * (65535.0 / span if span > 0 else 0.0)).astype(np.uint64)
     return np.argsort(_spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1)))
 

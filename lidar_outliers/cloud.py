@@ -6,6 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from algorithms.columns import column_max, column_min
 from lidar_outliers.errors import MissingDimensionError, ParameterError
 
 
@@ -81,7 +82,7 @@ class Cloud:
         if world.ndim != 2 or world.shape[1] != 3:
             raise ParameterError(f"xyz must have shape (n, 3), got {world.shape}")
         n = world.shape[0]
-        origin = np.round((world.min(axis=0) + world.max(axis=0)) / 2) if n else np.zeros(3)
+        origin = np.round((column_min(world) + column_max(world)) / 2) if n else np.zeros(3)
 
         def column(values: np.ndarray | None, dtype: type, name: str) -> np.ndarray:
             if values is None:

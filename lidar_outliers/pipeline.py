@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel
 
+from algorithms.columns import column_max, column_min
 from algorithms.result import DetectorResult
 from lidar_outliers.cloud import Cloud
 from lidar_outliers.detectors import GroundResult, StageModel, get_detector
@@ -267,8 +268,8 @@ def cloud_facts(cloud: Cloud) -> dict[str, Any]:
     """
     n = len(cloud)
     if n:
-        lo = (cloud.xyz.min(axis=0) + cloud.origin).tolist()
-        hi = (cloud.xyz.max(axis=0) + cloud.origin).tolist()
+        lo = (column_min(cloud.xyz) + cloud.origin).tolist()
+        hi = (column_max(cloud.xyz) + cloud.origin).tolist()
         bounds: dict[str, list[float]] | None = {"min": lo, "max": hi}
     else:
         bounds = None

@@ -47,6 +47,7 @@ from typing import Any
 import laspy
 import numpy as np
 
+from algorithms.columns import column_max, column_min
 from lidar_outliers import lasio
 from lidar_outliers.atomic import write_json_atomic
 from lidar_outliers.cloud import Cloud
@@ -353,8 +354,8 @@ def region_known(tiles: TileSet, rec: np.ndarray, detectors: Iterable[str]
     if not wanted or len(rec) == 0:
         return None
     ij = cells_of(rec["xyz"][:, :2], tiles.anchor, tiles.tile_size)
-    lo = ij.min(axis=0)
-    span = ij.max(axis=0) - lo + 1
+    lo = column_min(ij)
+    span = column_max(ij) - lo + 1
     keys = np.unique((ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1]))  # 1-D: fast to sort
     cells = [(int(lo[0] + key // span[1]), int(lo[1] + key % span[1])) for key in keys]
     known = {}

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from algorithms.columns import column_max, column_min
 from lidar_outliers import lasio
 from lidar_outliers.detectors import FLAG_BITS
 from lidar_outliers.output import FLAGS_DIMENSION, FLAGS_DTYPE
@@ -130,8 +131,8 @@ def spread_evenly(xyz: np.ndarray, budget: int, rng: np.random.Generator) -> np.
     n = len(xyz)
     if n <= budget:
         return np.arange(n)
-    lo = xyz.min(axis=0).astype(np.float64)
-    extent = max(float((xyz.max(axis=0) - lo).max()), 1e-9)
+    lo = column_min(xyz).astype(np.float64)
+    extent = max(float((column_max(xyz) - lo).max()), 1e-9)
     cells = ((xyz - lo) * ((2**_LEVELS - 1) / extent)).astype(np.uint64)
     code = _spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << 1) | (
         _spread_bits(cells[:, 2]) << 2)

@@ -13,8 +13,10 @@ from algorithms.detached import (
     detect_detached,
     distinct_voxels,
     envelope_scores,
+    first_lowest_per_key,
     floor_scores,
     ladder_pieces,
+    lowest_per_cell,
     median_spacing,
     nearest_distance,
     nearest_first,
@@ -77,6 +79,28 @@ def rough_terrain(seed: int, n: int = 1500) -> np.ndarray:
     xy = rng.uniform(0, 40, (n, 2))
     z = 0.3 * xy[:, 0] - 0.1 * xy[:, 1] + 3.0 * np.exp(-((xy - 20) ** 2).sum(1) / 20)
     return np.c_[xy, z + rng.normal(0, 0.15, n)]
+
+
+def test_lowest_per_key_matches_a_loop_over_keys():
+    rng = np.random.default_rng(31)
+    for n in (1, 7, 2000):
+        key = rng.integers(-3, max(2, n // 9), n)
+        z = np.round(rng.random(n), 1)  # ties in z: the first in order wins
+        slow = [int(np.flatnonzero(key == k)[np.argmin(z[key == k])]) for k in np.unique(key)]
+        np.testing.assert_array_equal(first_lowest_per_key(key, z), slow)
+
+
+def test_lowest_per_cell_takes_each_cells_lowest_point_of_the_index():
+    rng = np.random.default_rng(32)
+    xyz = np.column_stack([rng.random((500, 2)) * 2, np.round(rng.random(500), 1)])
+    index = rng.permutation(500)[:400]  # any order: ties go to the first in it
+    got = lowest_per_cell(xyz, index, 0.5, np.zeros(2))
+    cells = [tuple(c) for c in np.floor(xyz[index, :2] / 0.5).astype(int)]
+    slow = {}
+    for i, c in zip(index, cells):
+        if c not in slow or xyz[i, 2] < xyz[slow[c], 2]:
+            slow[c] = i
+    np.testing.assert_array_equal(got, [slow[c] for c in sorted(slow)])
 
 
 def test_small_clusters_matches_full_graph_components():
