@@ -9,7 +9,12 @@ the surface is fitted again from a fresh algebraic start, until a fit removes no
 from the surface of the fit before it (moved to the new centroid): the surface it refines; a
 first fit whose algebraic start does not converge (a section of road, wall and car the quadric
 cannot hold, where the iteration wanders between surfaces) starts again from the plane that
-fits the points best, as a quadric (the road, in a street).
+fits the points best, as a quadric (the road, in a street). Where that does not converge either
+(the iteration has no fixed point it can reach: on one 5 m street section of road, walls and
+a vehicle, 31 k points, it wanders from both starts on some CPUs and converges on others, as
+the last bits of its sums differ), the section is cut in four on the same grid and each
+quarter is fitted afresh, its earlier fits discarded, at most ``MAX_SPLITS`` times; the
+statistics report how many sections were cut.
 
 Scores: a removed point keeps the T_i of the fit that removed it; a kept point gets its T_i in the
 last fit. A section that has fewer than the points needed for eq. 31 to flag anything at ``alpha``
@@ -25,7 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from algorithms.checks import check_xyz
-from algorithms.fit_outcome import DOF_LOSS, min_patch_size
+from algorithms.columns import column_min
+from algorithms.fit_outcome import DOF_LOSS, NOT_CONVERGED, min_patch_size
 from algorithms.params import Parameters, param
 from algorithms.patch import SIGMA_DOC, UNTESTED_REASONS, Sigma, sigma_axes, untested_reasons
 from algorithms.result import DetectorResult
@@ -38,6 +44,9 @@ from algorithms.tiles import group_by_cell
 #: section of 35 k points in a 5 m section of a simulated street left its points untested.
 FIT_MAX_ITER = 2000
 FIT_TOL = 1e-8
+#: Times a section whose fit does not converge from either start is cut in four at most (a
+#: 5 m section down to 0.625 m quarters); its points stay untested after the last.
+MAX_SPLITS = 3
 
 
 @dataclass(frozen=True)
@@ -83,7 +92,7 @@ def section_cells(xy: np.ndarray, size: float) -> np.ndarray:
     if xy.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
     ij = np.floor(xy / size).astype(np.int64)
-    ij -= ij.min(axis=0)  # points left of the anchor get their own sections
+    ij -= column_min(ij)  # points left of the anchor get their own sections
     return ij[:, 1] * (int(ij[:, 0].max()) + 1) + ij[:, 0]
 
 
@@ -137,58 +146,43 @@ def detect_section(
     n = pts.shape[0]
     min_points = max(min_patch_size(alpha), DOF_LOSS + 1)
 
-    corner = pts.min(axis=0) if n else np.zeros(3)
+    corner = column_min(pts) if n else np.zeros(3)
     if anchor is not None:  # z too stays put: a tile computes with the whole cloud's numbers
         corner = np.r_[np.asarray(anchor, dtype=np.float64), 0.0]
     local = pts - corner
-    cell = section_cells(local[:, :2], float(section_size))
-    order, offsets = group_by_cell(cell)
-    sizes = np.diff(offsets)
-    max_n = int(sizes.max()) if sizes.size else 0
-    crit_table = np.full(max(max_n - DOF_LOSS + 1, 1), np.nan)
-    if max_n > DOF_LOSS:
-        crit_table[1:] = t_critical_value(alpha, np.arange(1, max_n - DOF_LOSS + 1))
-
-    m = sizes.size
-    xyz_sorted = np.ascontiguousarray(local[order])
-    score_sorted = np.full(n, np.nan)
-    critical_sorted = np.full(n, np.nan)
-    flagged_sorted = np.zeros(n, dtype=np.bool_)
-    outcome = np.zeros(m, dtype=np.int64)
-    fits = np.zeros(m, dtype=np.int64)
-    iterations = np.zeros(m, dtype=np.int64)
-    capped = np.zeros(m, dtype=np.bool_)
-    from_plane = np.zeros(m, dtype=np.bool_)
-    if m:
-        import numba
-
-        from algorithms.section_fits import fit_all_sections
-
-        bucket_offsets, bucket_sections = balanced_buckets(sizes, numba.get_num_threads())
-        fit_all_sections(
-            xyz_sorted, offsets, bucket_offsets, bucket_sections, var, crit_table, min_points,
-            int(max_iterations), FIT_MAX_ITER, FIT_TOL, bool(accelerate), score_sorted,
-            critical_sorted,
-            flagged_sorted, outcome, fits, iterations, capped, from_plane,
-        )  # fmt: skip
-    score = np.empty(n)
-    score[order] = score_sorted
-    critical = np.empty(n)
-    critical[order] = critical_sorted
-    flagged = np.empty(n, dtype=bool)
-    flagged[order] = flagged_sorted
+    score = np.full(n, np.nan)
+    critical = np.full(n, np.nan)
+    flagged = np.zeros(n, dtype=bool)
+    point_outcome = np.full(n, TESTED)
+    runs: list[SectionRun] = []
+    rows = np.arange(n)
+    size = float(section_size)
+    for splits in range(MAX_SPLITS + 1):
+        run = fit_sections(local[rows], size, var, alpha, min_points, int(max_iterations),
+                           bool(accelerate))
+        score[rows], critical[rows], flagged[rows] = run.score, run.critical, run.flagged
+        point_outcome[rows] = run.point_outcome()
+        runs.append(run)
+        wandered = run.outcome == STOPPED + NOT_CONVERGED
+        if splits == MAX_SPLITS or not wandered.any():
+            break
+        run.split = wandered  # cut in four, each quarter fitted afresh
+        rows = rows[run.points_of(wandered)]
+        size /= 2.0
 
     tested = ~np.isnan(score)
     reasons = untested_reasons()
     for code, name in UNTESTED_REASONS.items():
-        stopped = outcome == STOPPED + code
-        reasons[name] += int(np.count_nonzero(~tested[order][np.repeat(stopped, sizes)]))
+        reasons[name] += int(np.count_nonzero(~tested & (point_outcome == STOPPED + code)))
     # T_i distrusted in a converged fit (cancellation in q_vv): degenerate geometry too.
-    in_tested_section = np.repeat(outcome == TESTED, sizes)
-    reasons["degenerate_geometry"] += int(np.count_nonzero(~tested[order][in_tested_section]))
-    median_n = int(np.median(sizes)) if m else 0
+    reasons["degenerate_geometry"] += int(np.count_nonzero(~tested & (point_outcome == TESTED)))
+    top = runs[0]
+    m = top.outcome.size
+    median_n = int(np.median(top.sizes)) if m else 0
     crit_median = float(t_critical_value(alpha, median_n - DOF_LOSS)) if median_n > 9 else None
+    fits = np.concatenate([r.fits for r in runs])
     n_fits = int(fits.sum())
+    final_outcome = np.concatenate([r.outcome[~r.split] for r in runs])
     info = {
         "section_size": float(section_size),
         "sigma": float(np.sqrt(var[0])) if np.all(var == var[0]) else np.sqrt(var).tolist(),
@@ -199,19 +193,90 @@ def detect_section(
                                "the median section's first fit",
         "min_points_per_section": int(min_points),
         "sections": int(m),
-        "sections_untested": _sections_by_reason(outcome),
+        "sections_cut_in_four": int(sum(np.count_nonzero(r.split) for r in runs)),
+        "smallest_section_size": size,
+        "sections_untested": _sections_by_reason(final_outcome),
         "points_tested": int(tested.sum()),
         "points_untested": reasons,
         "fits": n_fits,
-        "max_fits_per_section": int(fits.max()) if m else 0,
-        "mean_fits_per_section": n_fits / m if m else None,
-        "sections_stopped_at_max_iterations": int(np.count_nonzero(capped)),
-        "sections_started_from_plane": int(np.count_nonzero(from_plane)),
-        "mean_iterations": float(iterations.sum()) / n_fits if n_fits else None,
+        "max_fits_per_section": int(fits.max()) if fits.size else 0,
+        "mean_fits_per_section": n_fits / fits.size if fits.size else None,
+        "sections_stopped_at_max_iterations": int(sum(np.count_nonzero(r.capped) for r in runs)),
+        "sections_started_from_plane": int(sum(np.count_nonzero(r.from_plane) for r in runs)),
+        "mean_iterations": float(sum(int(r.iterations.sum()) for r in runs)) / n_fits
+        if n_fits else None,
         "fit_max_iterations": FIT_MAX_ITER,
         "fit_tolerance": FIT_TOL,
     }
     return DetectorResult(score, flagged, critical, info)
+
+
+@dataclass
+class SectionRun:
+    """One pass of fit-and-remove over a grid of sections: per point (in the order of the
+    points given) score, critical value and flag; per section (in label order) its point
+    count, outcome, fits, adjustment iterations, whether ``max_iterations`` ended it and
+    whether its first fit started again from the plane; ``split``: the sections cut in four
+    for the next pass."""
+
+    order: np.ndarray
+    sizes: np.ndarray
+    score: np.ndarray
+    critical: np.ndarray
+    flagged: np.ndarray
+    outcome: np.ndarray
+    fits: np.ndarray
+    iterations: np.ndarray
+    capped: np.ndarray
+    from_plane: np.ndarray
+    split: np.ndarray
+
+    def point_outcome(self) -> np.ndarray:
+        """(n,) the outcome of each point's section."""
+        out = np.empty(self.order.size, dtype=np.int64)
+        out[self.order] = np.repeat(self.outcome, self.sizes)
+        return out
+
+    def points_of(self, sections: np.ndarray) -> np.ndarray:
+        """Positions (into the points given) of the points of the sections of the mask."""
+        return np.sort(self.order[np.repeat(sections, self.sizes)])
+
+
+def fit_sections(local: np.ndarray, size: float, var: np.ndarray, alpha: float,
+                 min_points: int, max_iterations: int, accelerate: bool) -> SectionRun:
+    """Fit-and-remove (eqs. 18-31) on every square section of ``size`` metres of ``local``
+    (n, 3; grid corner at XY (0, 0)), all sections in parallel."""
+    n = local.shape[0]
+    order, offsets = group_by_cell(section_cells(local[:, :2], size))
+    sizes = np.diff(offsets)
+    max_n = int(sizes.max()) if sizes.size else 0
+    crit_table = np.full(max(max_n - DOF_LOSS + 1, 1), np.nan)
+    if max_n > DOF_LOSS:
+        crit_table[1:] = t_critical_value(alpha, np.arange(1, max_n - DOF_LOSS + 1))
+    m = sizes.size
+    xyz_sorted = np.ascontiguousarray(local[order])
+    score_sorted = np.full(n, np.nan)
+    critical_sorted = np.full(n, np.nan)
+    flagged_sorted = np.zeros(n, dtype=np.bool_)
+    run = SectionRun(order, sizes, np.empty(n), np.empty(n), np.empty(n, dtype=bool),
+                     np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64),
+                     np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.bool_),
+                     np.zeros(m, dtype=np.bool_), np.zeros(m, dtype=bool))
+    if m:
+        import numba
+
+        from algorithms.section_fits import fit_all_sections
+
+        bucket_offsets, bucket_sections = balanced_buckets(sizes, numba.get_num_threads())
+        fit_all_sections(
+            xyz_sorted, offsets, bucket_offsets, bucket_sections, var, crit_table, min_points,
+            max_iterations, FIT_MAX_ITER, FIT_TOL, accelerate, score_sorted, critical_sorted,
+            flagged_sorted, run.outcome, run.fits, run.iterations, run.capped, run.from_plane,
+        )  # fmt: skip
+    run.score[order] = score_sorted
+    run.critical[order] = critical_sorted
+    run.flagged[order] = flagged_sorted
+    return run
 
 
 def _sections_by_reason(outcome: np.ndarray) -> dict[str, int]:
