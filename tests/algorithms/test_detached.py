@@ -97,7 +97,7 @@ def test_lowest_per_cell_takes_each_cells_lowest_point_of_the_index():
     got = lowest_per_cell(xyz, index, 0.5, np.zeros(2))
     cells = [tuple(c) for c in np.floor(xyz[index, :2] / 0.5).astype(int)]
     slow = {}
-    for i, c in zip(index, cells):
+    for i, c in zip(index, cells, strict=True):
         if c not in slow or xyz[i, 2] < xyz[slow[c], 2]:
             slow[c] = i
     np.testing.assert_array_equal(got, [slow[c] for c in sorted(slow)])
