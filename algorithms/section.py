@@ -150,52 +150,81 @@ def detect_section(
     if anchor is not None:  # z too stays put: a tile computes with the whole cloud's numbers
         corner = np.r_[np.asarray(anchor, dtype=np.float64), 0.0]
     local = pts - corner
-    score = np.full(n, np.nan)
-    critical = np.full(n, np.nan)
-    flagged = np.zeros(n, dtype=bool)
-    point_outcome = np.full(n, TESTED)
-    runs: list[SectionRun] = []
-    rows = np.arange(n)
-    size = float(section_size)
+    runs = fit_with_quarters(local, float(section_size), var, alpha, min_points,
+                             int(max_iterations), bool(accelerate))
+    score, critical, flagged, point_outcome = merged_runs(runs, n)
+    info = {
+        "section_size": float(section_size),
+        "sigma": float(np.sqrt(var[0])) if np.all(var == var[0]) else np.sqrt(var).tolist(),
+        "alpha": float(alpha),
+        "max_iterations": int(max_iterations),
+        **_run_statistics(runs, score, point_outcome, alpha, min_points),
+        "fit_max_iterations": FIT_MAX_ITER,
+        "fit_tolerance": FIT_TOL,
+    }
+    return DetectorResult(score, flagged, critical, info)
+
+
+def fit_with_quarters(local: np.ndarray, size: float, var: np.ndarray, alpha: float,
+                      min_points: int, max_iterations: int, accelerate: bool
+                      ) -> list[SectionRun]:
+    """:func:`fit_sections` at ``size``, then again on the points of every section whose fit
+    converged from neither start, in sections half as wide (the same grid cut in four), at
+    most :data:`MAX_SPLITS` times. Each run's ``rows``: its points' positions in ``local``."""
+    runs = []
+    rows = np.arange(local.shape[0])
     for splits in range(MAX_SPLITS + 1):
-        run = fit_sections(local[rows], size, var, alpha, min_points, int(max_iterations),
-                           bool(accelerate))
-        score[rows], critical[rows], flagged[rows] = run.score, run.critical, run.flagged
-        point_outcome[rows] = run.point_outcome()
+        run = fit_sections(local[rows], size, var, alpha, min_points, max_iterations, accelerate)
+        run.rows = rows
         runs.append(run)
         wandered = run.outcome == STOPPED + NOT_CONVERGED
         if splits == MAX_SPLITS or not wandered.any():
             break
-        run.split = wandered  # cut in four, each quarter fitted afresh
+        run.split = wandered
         rows = rows[run.points_of(wandered)]
         size /= 2.0
+    return runs
 
+
+def merged_runs(runs: list[SectionRun], n: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(n,) score, critical value, flag and section outcome of each point from the last run
+    that fitted it (a cut section's quarters replace it)."""
+    score = np.full(n, np.nan)
+    critical = np.full(n, np.nan)
+    flagged = np.zeros(n, dtype=bool)
+    outcome = np.full(n, TESTED)
+    for run in runs:
+        score[run.rows], critical[run.rows], flagged[run.rows] = (
+            run.score, run.critical, run.flagged)
+        outcome[run.rows] = run.point_outcome()
+    return score, critical, flagged, outcome
+
+
+def _run_statistics(runs: list[SectionRun], score: np.ndarray, point_outcome: np.ndarray,
+                    alpha: float, min_points: int) -> dict:
+    """The statistics of the sections, their quarters and their fits."""
     tested = ~np.isnan(score)
     reasons = untested_reasons()
     for code, name in UNTESTED_REASONS.items():
         reasons[name] += int(np.count_nonzero(~tested & (point_outcome == STOPPED + code)))
     # T_i distrusted in a converged fit (cancellation in q_vv): degenerate geometry too.
     reasons["degenerate_geometry"] += int(np.count_nonzero(~tested & (point_outcome == TESTED)))
-    top = runs[0]
-    m = top.outcome.size
-    median_n = int(np.median(top.sizes)) if m else 0
-    crit_median = float(t_critical_value(alpha, median_n - DOF_LOSS)) if median_n > 9 else None
+    m = runs[0].outcome.size
+    median_n = int(np.median(runs[0].sizes)) if m else 0
     fits = np.concatenate([r.fits for r in runs])
     n_fits = int(fits.sum())
-    final_outcome = np.concatenate([r.outcome[~r.split] for r in runs])
-    info = {
-        "section_size": float(section_size),
-        "sigma": float(np.sqrt(var[0])) if np.all(var == var[0]) else np.sqrt(var).tolist(),
-        "alpha": float(alpha),
-        "max_iterations": int(max_iterations),
-        "critical_value": crit_median,
+    return {
+        "critical_value": float(t_critical_value(alpha, median_n - DOF_LOSS))
+        if median_n > 9 else None,
         "critical_value_note": "t(n-9) of each fit, n the points in it; the value shown is for "
                                "the median section's first fit",
         "min_points_per_section": int(min_points),
         "sections": int(m),
         "sections_cut_in_four": int(sum(np.count_nonzero(r.split) for r in runs)),
-        "smallest_section_size": size,
-        "sections_untested": _sections_by_reason(final_outcome),
+        "smallest_section_size": runs[-1].size,
+        "sections_untested": _sections_by_reason(
+            np.concatenate([r.outcome[~r.split] for r in runs])),
         "points_tested": int(tested.sum()),
         "points_untested": reasons,
         "fits": n_fits,
@@ -205,20 +234,18 @@ def detect_section(
         "sections_started_from_plane": int(sum(np.count_nonzero(r.from_plane) for r in runs)),
         "mean_iterations": float(sum(int(r.iterations.sum()) for r in runs)) / n_fits
         if n_fits else None,
-        "fit_max_iterations": FIT_MAX_ITER,
-        "fit_tolerance": FIT_TOL,
     }
-    return DetectorResult(score, flagged, critical, info)
 
 
 @dataclass
 class SectionRun:
-    """One pass of fit-and-remove over a grid of sections: per point (in the order of the
-    points given) score, critical value and flag; per section (in label order) its point
-    count, outcome, fits, adjustment iterations, whether ``max_iterations`` ended it and
-    whether its first fit started again from the plane; ``split``: the sections cut in four
-    for the next pass."""
+    """One pass of fit-and-remove over a grid of sections of edge ``size``: per point (in the
+    order of the points given) score, critical value and flag; per section (in label order)
+    its point count, outcome, fits, adjustment iterations, whether ``max_iterations`` ended it
+    and whether its first fit started again from the plane; ``split``: the sections cut in
+    four for the next pass; ``rows``: where the points given lie in the caller's array."""
 
+    size: float
     order: np.ndarray
     sizes: np.ndarray
     score: np.ndarray
@@ -230,6 +257,7 @@ class SectionRun:
     capped: np.ndarray
     from_plane: np.ndarray
     split: np.ndarray
+    rows: np.ndarray | None = None
 
     def point_outcome(self) -> np.ndarray:
         """(n,) the outcome of each point's section."""
@@ -258,7 +286,7 @@ def fit_sections(local: np.ndarray, size: float, var: np.ndarray, alpha: float,
     score_sorted = np.full(n, np.nan)
     critical_sorted = np.full(n, np.nan)
     flagged_sorted = np.zeros(n, dtype=np.bool_)
-    run = SectionRun(order, sizes, np.empty(n), np.empty(n), np.empty(n, dtype=bool),
+    run = SectionRun(size, order, sizes, np.empty(n), np.empty(n), np.empty(n, dtype=bool),
                      np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64),
                      np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.bool_),
                      np.zeros(m, dtype=np.bool_), np.zeros(m, dtype=bool))
