@@ -69,6 +69,7 @@ from algorithms.columns import column_min
 from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
 from algorithms.stats import strided_sample
+from algorithms.threads import worker_threads
 
 
 @dataclass(frozen=True)
@@ -211,7 +212,7 @@ def nearest_first(tree: Any, queries: np.ndarray, k: int) -> tuple[np.ndarray, n
         dist, idx = dist[:, :k], idx[:, :k]  # views: a copy of the answers costs fresh pages
         if tied.size:
             wide = min(k + TIE_SLACK, tree.n)
-            d, i = tree.query(queries[tied], k=wide, workers=-1)
+            d, i = tree.query(queries[tied], k=wide, workers=worker_threads())
             d, i = d.reshape(tied.size, wide), i.reshape(tied.size, wide).astype(np.int64)
             by_distance_then_index(d, i)
             dist[tied], idx[tied] = d[:, :k], i[:, :k]

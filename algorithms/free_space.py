@@ -35,6 +35,7 @@ from algorithms.columns import column_max, column_min
 from algorithms.errors import ParameterError
 from algorithms.jit import njit, prange
 from algorithms.result import DetectorResult
+from algorithms.threads import worker_threads
 from algorithms.transient import TransientParameters
 
 #: Largest number of grid cells before the cell edge is doubled (memory of the cell index).
@@ -339,7 +340,7 @@ def surface_at_points(xyz: np.ndarray, k: int = SURFACE_NEIGHBOURS
     local = xyz - xyz.mean(axis=0)
     tree = cKDTree(local)
     for s in range(0, n, NORMAL_BATCH):
-        _, idx = tree.query(local[s:s + NORMAL_BATCH], k=kk, workers=-1)
+        _, idx = tree.query(local[s:s + NORMAL_BATCH], k=kk, workers=worker_threads())
         nb = local[idx.reshape(-1, kk)]
         nb = nb - nb.mean(axis=1, keepdims=True)
         cov = np.einsum("nki,nkj->nij", nb, nb) / kk

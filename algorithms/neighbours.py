@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 
 from algorithms.columns import column_min
 from algorithms.jit import njit, prange
+from algorithms.threads import worker_threads
 
 #: Metres: queries are asked cell by cell of this XY edge (:func:`query_nearest`).
 QUERY_CELL = 1.0
@@ -42,17 +43,17 @@ def space_order(points: np.ndarray) -> np.ndarray:
 
 def query_nearest(tree: cKDTree, queries: np.ndarray, k: int | list[int],
                   **options: float) -> tuple[np.ndarray, np.ndarray]:
-    """``tree.query(queries, k, workers=-1, **options)``, asked cell by cell
+    """``tree.query(queries, k, workers=worker_threads(), **options)``, asked cell by cell
     (:func:`space_order`) and answered in the queries' order. Neighbouring queries then walk
     the same branches of the tree while they are in the cache: the same answers in about 80 %
     of the time for queries in a file's time order."""
     if len(queries) < ORDERED_QUERIES_MIN:
-        return tree.query(queries, k=k, workers=-1, **options)
+        return tree.query(queries, k=k, workers=worker_threads(), **options)
     order = space_order(queries)
     out_dist = out_idx = None
     for s in range(0, len(order), ORDERED_BLOCK):
         rows = order[s:s + ORDERED_BLOCK]
-        dist, idx = tree.query(queries[rows], k=k, workers=-1, **options)
+        dist, idx = tree.query(queries[rows], k=k, workers=worker_threads(), **options)
         if out_dist is None:
             out_dist = np.empty((len(queries), *dist.shape[1:]), dtype=dist.dtype)
             out_idx = np.empty((len(queries), *idx.shape[1:]), dtype=idx.dtype)
@@ -124,7 +125,7 @@ def ball_candidates(tree: cKDTree, xyz: np.ndarray, points: np.ndarray, radius: 
     the points at exactly that distance are in), in one ball query: (row, index) pairs as
     flat int64 arrays, grouped by row in order. Where a k-d tree broke ties at the k-th
     neighbour in its own order, these are what ties are broken again from."""
-    near = tree.query_ball_point(xyz[points], radius * (1 + 1e-9), workers=-1)
+    near = tree.query_ball_point(xyz[points], radius * (1 + 1e-9), workers=worker_threads())
     sizes = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
     flat = np.concatenate(near).astype(np.int64)
     return np.repeat(np.arange(len(points)), sizes), flat

@@ -55,6 +55,7 @@ import numpy as np
 from algorithms.errors import ParameterError
 from algorithms.params import Parameters, param
 from algorithms.result import DetectorResult
+from algorithms.threads import worker_threads
 
 
 @dataclass(frozen=True)
@@ -284,7 +285,7 @@ def covered_in_plan(seen_xy: np.ndarray, xy: np.ndarray, radius: float) -> np.nd
     from algorithms.neighbours import neighbour_tree
 
     nearest, _ = neighbour_tree(seen_xy).query(
-        xy, k=1, distance_upper_bound=np.nextafter(radius, np.inf), workers=-1)
+        xy, k=1, distance_upper_bound=np.nextafter(radius, np.inf), workers=worker_threads())
     return nearest <= radius
 
 

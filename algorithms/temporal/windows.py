@@ -12,7 +12,6 @@ Long series take the compiled smoother instead (``use_compiled``), which gives t
 
 from __future__ import annotations
 
-import os
 import sys
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -21,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from algorithms.temporal.smoother import MIN_SEGMENT_POINTS, WindowBlock, block_differences
+from algorithms.threads import worker_threads
 
 #: Windows per block (a block's temporaries of this length stay near the CPU), and the number
 #: of windows below which ``_differences`` runs on one thread.
@@ -185,16 +185,6 @@ def _plan_segments(starts: np.ndarray, ends: np.ndarray, n1: int, n2: int) -> _P
     lo, hi = np.repeat(starts[medium], m_len), np.repeat(ends[medium], m_len)
     k = lo + np.arange(lo.size) - np.repeat(np.cumsum(m_len) - m_len, m_len)
     return _Plan(n1, w, runs, served, (k, k, lo, hi), shared)
-
-
-def worker_threads() -> int:
-    """Threads for the numpy kernels: NUMBA_NUM_THREADS when set (the knob of the numba
-    detectors), else the CPUs this process may run on."""
-    env = os.environ.get("NUMBA_NUM_THREADS", "")
-    if env.isdigit() and int(env) > 0:
-        return int(env)
-    affinity = getattr(os, "sched_getaffinity", None)
-    return len(affinity(0)) if affinity else (os.cpu_count() or 1)
 
 
 def _differences(

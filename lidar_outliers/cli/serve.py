@@ -27,6 +27,7 @@ from pathlib import Path
 
 import psutil
 
+from algorithms.threads import available_cpus
 from lidar_outliers.jobs.settings import PROJECT_ROOT, get_settings
 from lidar_outliers.jobs.store import Store
 
@@ -190,6 +191,13 @@ def _descendants(pid: int) -> list[psutil.Process]:
         return []
 
 
+def threads_per_job(concurrency: int) -> int:
+    """Threads each of the worker's ``concurrency`` job processes computes on: the CPUs shared
+    among them (NUMBA_NUM_THREADS, which the k-d tree queries follow too), so that jobs or
+    tiles running side by side do not crowd the same cores."""
+    return max(1, available_cpus() // max(1, concurrency))
+
+
 def run(args: argparse.Namespace) -> int:
     settings = get_settings()
     host = args.host or settings.api_host
@@ -197,6 +205,7 @@ def run(args: argparse.Namespace) -> int:
     concurrency = args.concurrency or settings.worker_concurrency
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, DATA_DIR=str(settings.data_dir), PYTHONUNBUFFERED="1")
+    env.setdefault("NUMBA_NUM_THREADS", str(threads_per_job(concurrency)))
     supervisor = Supervisor(settings.data_dir / "run", env)
     stopping = False
 

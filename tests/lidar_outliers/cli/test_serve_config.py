@@ -37,3 +37,10 @@ def test_supervisord_reads_the_programs_as_given(tmp_path: Path) -> None:
         assert read.stopasgroup and read.killasgroup
         assert read.directory == str(PROJECT_ROOT)
         assert read.priority == program.priority
+
+
+def test_job_processes_share_the_cpus(monkeypatch) -> None:
+    import lidar_outliers.cli.serve as serve
+
+    monkeypatch.setattr(serve, "available_cpus", lambda: 8)
+    assert [serve.threads_per_job(c) for c in (1, 2, 3, 8, 16)] == [8, 4, 2, 1, 1]
