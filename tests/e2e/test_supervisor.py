@@ -97,6 +97,14 @@ def small_job_succeeds(served: Served, tmp_path: Path) -> None:
     assert done["status"] == "successful", done["message"]
 
 
+def test_the_worker_computes_on_the_cpus_shared_among_its_job_processes(served: Served) -> None:
+    from lidar_outliers.cli.serve import threads_per_job
+
+    expected = os.environ.get("NUMBA_NUM_THREADS") or str(threads_per_job(1))  # concurrency 1
+    worker = psutil.Process(served.programs()["worker"])
+    assert worker.environ()["NUMBA_NUM_THREADS"] == expected
+
+
 def test_killed_worker_is_restarted_and_its_job_runs_again(served: Served,
                                                           tmp_path: Path) -> None:
     slow = tmp_path / "slow.las"
@@ -158,11 +166,3 @@ def test_terminated_api_is_restarted(served: Served, tmp_path: Path) -> None:
 def test_sigterm_stops_every_process(served: Served) -> None:
     assert len(served.programs()) == 3
     stop_and_check(served.proc, signal.SIGTERM)  # exit code 0 and no process left
-
-
-def test_the_worker_computes_on_the_cpus_shared_among_its_job_processes(served: Served) -> None:
-    from lidar_outliers.cli.serve import threads_per_job
-
-    expected = os.environ.get("NUMBA_NUM_THREADS") or str(threads_per_job(1))  # concurrency 1
-    worker = psutil.Process(served.programs()["worker"])
-    assert worker.environ()["NUMBA_NUM_THREADS"] == expected
