@@ -177,15 +177,26 @@ class HeightFieldParameters(Parameters):
         "for the finest at which the surfaces are whole (reported); 0: none, the low test "
         "scores nothing.", ge=0, le=1000)
     static_dt: float = param(
-        0.0, "Seconds: a point of a scattered patch (no surface) with a neighbour within 0.2 m "
+        0.5, "Seconds: a point of a scattered patch (no surface) with a neighbour within 0.2 m "
         "recorded at least this long before or after it was seen again, a static scatter such "
-        "as a tree crown, and is not flagged above the surface (e.g. 0.5; needs gps_time). "
-        "0: off (a persistent mist or fog is static too).", ge=0, le=1e6)
+        "as a tree crown, and is not flagged above the surface when it also lies "
+        "static_above over the ground (needs gps_time). 0: off.", ge=0, le=1e6)
+    static_above: float = param(
+        2.0, "Metres: a scatter seen again is vegetation, and not flagged above the surface, "
+        "only this far above the lowest return around it (the 3 x 3 cells of 1 m around its "
+        "own); exhaust, wheel spray and mist over puddles hang lower, within a vehicle's "
+        "height of the road, and are tested even when they persist.", ge=0, le=1000)
 
 
 #: Metres: how near a point recorded at another moment must lie for ``static_dt``
 #: (transient's default radius).
 STATIC_RADIUS = 0.2
+
+#: Metres: the cells whose lowest return ``static_above`` measures from; the 3 x 3 cells around
+#: a point's own reach at least this far each way and at most 2 sqrt(2) times it.
+STATIC_CELL = 1.0
+#: XY metres the height over the lowest return around a point reads (a tile's reach).
+STATIC_REACH = 2.0 * np.sqrt(2.0) * STATIC_CELL
 
 #: Points per cell a piece needs to be a real surface for the ``low`` test (detached's).
 LOW_PIECE_POINTS = 1000
@@ -232,6 +243,31 @@ def floor_cells(local: np.ndarray, index: np.ndarray, cell: float,
             near = LOW_MAX_SLOPE * cell * np.hypot(di, dj)
             support += (keys[pos] == want) & (np.abs(z[pos] - z) <= near)
     return np.sort(lowest[order[support >= FLOOR_NEIGHBOURS]])
+
+
+def height_above_lowest(local: np.ndarray, rows: np.ndarray, cell: float = STATIC_CELL
+                        ) -> np.ndarray:
+    """(m,) how far each point ``rows`` of ``local`` lies above the lowest return of the 3 x 3
+    XY cells of ``cell`` metres around its own (grid corner at local's origin, so a tile and
+    the whole cloud share the cells): the height of a tree crown over the road beside it."""
+    from algorithms.detached import grid_index
+
+    if rows.size == 0:
+        return np.zeros(0)
+    ij = grid_index(local, cell, np.zeros(2))
+    ij -= column_min(ij) - 1  # a free cell on every side: the 3 x 3 keys never wrap
+    width = int(ij[:, 1].max()) + 2
+    key = ij[:, 0] * width + ij[:, 1]
+    keys, group = np.unique(key, return_inverse=True)
+    floor = np.full(keys.size, np.inf)
+    np.minimum.at(floor, group.ravel(), local[:, 2])
+    lowest = np.full(rows.size, np.inf)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            want = key[rows] + di * width + dj
+            pos = np.minimum(np.searchsorted(keys, want), keys.size - 1)
+            lowest = np.where(keys[pos] == want, np.minimum(lowest, floor[pos]), lowest)
+    return local[rows, 2] - lowest
 
 
 def low_scores(local: np.ndarray, sigma: float, spacing_xy: float | str = "auto",
@@ -289,7 +325,8 @@ def detect_height_field(
     wanted: np.ndarray | None = None,
     sample: np.ndarray | None = None,
     sigma_floor: float = 0.0,
-    static_dt: float = 0.0,
+    static_dt: float = 0.5,
+    static_above: float = 2.0,
     gps_time: np.ndarray | None = None,
 ) -> DetectorResult:
     """Edge-aware leave-one-out height-field outlier test (see the module docstring).
@@ -320,10 +357,12 @@ def detect_height_field(
     static_dt, gps_time : with both (seconds > 0, (n,) seconds), a point whose full patch is
         not one surface and with one of its k nearest within STATIC_RADIUS recorded at least
         ``static_dt`` before or after it was seen again: a static scatter, whose score above
-        the surface is capped at the threshold (the low test still applies). Transient
-        outliers (dust, exhaust while driving, rain, a moving object) are seen once; tree
-        crowns, whose scatter no height field holds, are seen again by the next pass or the
-        other scanner; so is a persistent mist.
+        the surface is capped at the threshold (the low test still applies), when it lies
+        more than ``static_above`` metres over the lowest return around it
+        (:func:`height_above_lowest`). Transient outliers (dust, exhaust while driving, rain,
+        a moving object) are seen once; tree crowns, whose scatter no height field holds, are
+        seen again by the next pass or the other scanner; so are a plume fed by the tailpipe
+        while the vehicle stands and a mist over a puddle, which hang near the road.
 
     Returns
     -------
@@ -331,7 +370,8 @@ def detect_height_field(
     fit is singular), flagged = score > threshold, critical_value = threshold.
     """
     HeightFieldParameters(k=k, sigma=sigma, threshold=threshold, rms_weight=rms_weight,
-                          one_sided=one_sided, low=low, spacing_xy=spacing_xy, voxel=voxel)
+                          one_sided=one_sided, low=low, spacing_xy=spacing_xy, voxel=voxel,
+                          static_dt=static_dt, static_above=static_above)
     from algorithms.height_field_fits import scores_from_terms, seen_again, terms_of
 
     arr = check_xyz(xyz)
@@ -361,11 +401,16 @@ def detect_height_field(
     if edge.any():
         terms[edge] = terms_of(local, nbr[edge], rows[edge])
     static = np.zeros(n, dtype=bool)
+    info["points_seen_again_near_ground"] = 0
     if gps_time is not None and static_dt > 0 and edge.any():
         # a scatter that no height field holds (its full patch is not one surface), seen again
         t = np.asarray(gps_time, dtype=np.float64)
         static[rows[edge]] = seen_again(grid_local, t, nbr[edge], rows[edge], STATIC_RADIUS,
                                         float(static_dt))
+        again = np.flatnonzero(static)
+        low_again = height_above_lowest(grid_local, again) <= static_above
+        static[again[low_again]] = False  # near the road: exhaust, spray, mist
+        info["points_seen_again_near_ground"] = int(np.count_nonzero(low_again))
     del nbr
     score = np.full(n, np.nan)
     score[rows] = scores_from_terms(terms, sig, float(rms_weight),
@@ -562,6 +607,8 @@ def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray
     if n < kk:
         return np.where(where, np.inf, 0.0)
     out = kth_distance_within(local, kk, where, allowed)
+    if name is None and params.static_dt > 0:  # a scatter seen again: the lowest return around
+        out = np.maximum(out, STATIC_REACH)
     if name is None and params.low:
         size = voxel_size(local, LOW_PIECE_POINTS, float(params.spacing_xy), params.voxel)
         if size is not None:

@@ -107,9 +107,10 @@ DETECTOR = Detector(
     summary=("Leave-one-out local height fields with edge-aware half patches and robust sigma; "
              "clumps under the lowest ground-like surface (mirror returns)."),
     flag_bit=64,
-    # k nearest neighbours besides the point: a first guess (the reach widens it, and the low
-    # test's pieces and floors reach further)
-    halo=lambda params: 2.0,
+    # k nearest neighbours besides the point and, for a scatter seen again, the lowest return
+    # around it: a first guess (the reach widens it, and the low test's pieces and floors
+    # reach further)
+    halo=lambda params: 3.0 if params.static_dt > 0 else 2.0,
     reach=reach,
     estimate=Estimate(applies=pending, values=values, pin=pin),
 )

@@ -345,7 +345,7 @@ def _crown_and_dust():
 
 def test_a_scatter_seen_again_is_not_flagged_and_one_seen_once_is():
     xyz, t, label = _crown_and_dust()
-    off = detect_height_field(xyz, gps_time=t, low=False)
+    off = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.0)
     on = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.5)
     assert off.info["points_static"] == 0 and on.info["points_static"] > 1000
     crown, dust = label == 1, label == 2
@@ -370,3 +370,39 @@ def test_seen_again_equals_a_loop_over_the_neighbours():
                 for j in nbr[p]) for p in points]
     np.testing.assert_array_equal(got, want)
     assert 0 < np.count_nonzero(got) < len(points)
+
+
+def test_a_scatter_seen_again_near_the_road_is_still_flagged():
+    """A mist over the road recorded on both passes is seen again as a crown is, but it hangs
+    within ``static_above`` of the road: only the crown, metres up, is taken for vegetation."""
+    xyz, t, label = _crown_and_dust()
+    rng = np.random.default_rng(5)
+    mist = np.c_[rng.uniform(14, 17, (600, 2)), rng.uniform(0.05, 0.8, 600)]
+    xyz = np.r_[xyz, mist]
+    t = np.r_[t, np.where(rng.random(600) < 0.5, 0.0, 10.0) + rng.random(600)]
+    label = np.r_[label, np.full(600, 3)]
+    off = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.0)
+    on = detect_height_field(xyz, gps_time=t, low=False)  # the defaults: 0.5 s, 2 m
+    crown, mist = label == 1, label == 3
+    assert on.info["points_seen_again_near_ground"] > 100
+    assert off.flagged[mist].mean() > 0.5
+    np.testing.assert_array_equal(on.flagged[mist], off.flagged[mist])
+    assert on.flagged[crown].mean() < 0.5 * off.flagged[crown].mean()
+    everywhere = detect_height_field(xyz, gps_time=t, low=False, static_above=0.0)
+    assert everywhere.flagged[mist].mean() < 0.5 * off.flagged[mist].mean()
+
+
+def test_height_above_lowest_equals_a_loop_over_the_cells():
+    from algorithms.height_field import height_above_lowest
+
+    rng = np.random.default_rng(8)
+    local = np.c_[rng.uniform(0, 6, (500, 2)), rng.normal(0, 2, 500)]
+    local[:40, :2] = np.floor(local[:40, :2])  # points on cell edges
+    rows = np.arange(0, 500, 3)
+    got = height_above_lowest(local, rows, 0.7)
+    cell = np.floor(local[:, :2] / 0.7)
+    want = [local[r, 2] - local[np.all(np.abs(cell - cell[r]) <= 1, axis=1), 2].min()
+            for r in rows]
+    np.testing.assert_allclose(got, want, rtol=0, atol=0)
+    assert (got >= 0).all() and (got > 0).any()
+    assert height_above_lowest(local, np.zeros(0, np.int64)).shape == (0,)

@@ -473,12 +473,15 @@ def test_tiled_transient_keeps_points_on_tile_edges_far_from_the_origin(tmp_path
 
 
 def test_height_field_seen_again_tiled_equals_whole(scene, tmp_path):
-    """``static_dt`` reads the times of a point's k nearest, which a tile's halo holds."""
+    """``static_dt`` reads the times of a point's k nearest, which a tile's halo holds, and
+    ``static_above`` the lowest return of the cells around it, which the reach adds."""
     pipeline = {"pipeline": [{"detector": "height_field", "static_dt": 0.5, "low": False}]}
     whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
     stats_whole = process_file(scene, whole, pipeline)
     stats = process_file(scene, tiled, pipeline, tile_size=TILE)
-    assert stats["mode"] == "tiled" and stats_whole["stages"][0]["info"]["points_static"] > 0
+    info = stats_whole["stages"][0]["info"]
+    assert stats["mode"] == "tiled" and info["points_static"] > 0
+    assert info["points_seen_again_near_ground"] > 0
     _assert_same(_results(whole), _results(tiled), ["height_field"])
 
 
