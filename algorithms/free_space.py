@@ -25,6 +25,14 @@ beam is enough. ``margin`` is the least: a beam that meets the surface at its en
 angle g runs within ``radius`` of that surface's own points over its last (radius + 8 x
 roughness) / sin g metres, so its margin grows to that (:func:`grazing_margins`; range noise
 over the sine of the incidence angle), whatever the range and the mounting.
+
+A beam that passes a point on some pulses may return at it on others: the edge of a surface
+that part of the footprint hits, or the same spot seen on every turn of a scanner that stands
+still, whose beams a lever arm a few centimetres off moves past its own returns. A droplet is
+almost never returned to. So with the points' times a point stays flagged only while the
+returns of other pulses along its own beam (within ``radius`` across the line from its origin
+through it, ``margin`` along it: :func:`beam_returns`) number at most ``hit_ratio`` times the
+beams that saw through it (0.5: an edge is hit about half the time).
 """
 
 from __future__ import annotations
@@ -320,6 +328,43 @@ def see_through_counts(
     return counts.sum(axis=0)
 
 
+#: Points whose beam returns are counted per batch (bounds the ball queries' memory).
+RETURNS_BATCH = 20_000
+
+
+def beam_returns(xyz: np.ndarray, origin: np.ndarray, gps_time: np.ndarray, points: np.ndarray,
+                 *, radius: float, depth: float) -> np.ndarray:
+    """(m,) for each of the points ``points`` (indices), how many returns of other pulses (a
+    time of their own) lie on its beam at it: within ``radius`` of the line from its origin
+    through it and within ``depth`` of it along that line."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(points.size, dtype=np.int64)
+    if points.size == 0:
+        return out
+    centre = xyz[points].mean(axis=0)
+    local = xyz - centre
+    tree = cKDTree(local)
+    reach = float(np.hypot(radius, depth))
+    for s in range(0, points.size, RETURNS_BATCH):
+        rows = points[s:s + RETURNS_BATCH]
+        near = tree.query_ball_point(local[rows], reach, workers=worker_threads())
+        sizes = np.fromiter((len(a) for a in near), dtype=np.int64, count=rows.size)
+        j = np.fromiter((i for a in near for i in a), dtype=np.int64, count=int(sizes.sum()))
+        p = np.repeat(rows, sizes)
+        beam = local[rows] - (origin[rows] - centre)
+        beam /= np.linalg.norm(beam, axis=1)[:, None]
+        u = np.repeat(beam, sizes, axis=0)
+        d = local[j] - local[p]
+        along = np.einsum("ij,ij->i", d, u)
+        across2 = np.einsum("ij,ij->i", d, d) - along * along
+        on_beam = ((gps_time[j] != gps_time[p]) & (np.abs(along) <= depth)
+                   & (across2 <= radius * radius))
+        out[s:s + rows.size] = np.add.reduceat(on_beam.astype(np.int64),
+                                               np.r_[0, np.cumsum(sizes)[:-1]]) * (sizes > 0)
+    return out
+
+
 def surface_at_points(xyz: np.ndarray, k: int = SURFACE_NEIGHBOURS
                       ) -> tuple[np.ndarray, np.ndarray]:
     """(n, 3) unit normal and (n,) roughness (metres) of the surface around each point.
@@ -382,6 +427,8 @@ def detect_free_space(
     min_rays: int = 1,
     seen_again: np.ndarray | None = None,
     beams: np.ndarray | None = None,
+    gps_time: np.ndarray | None = None,
+    hit_ratio: float = 0.5,
 ) -> DetectorResult:
     """Flag points that at least ``min_rays`` other beams saw through (module docstring).
 
@@ -395,6 +442,9 @@ def detect_free_space(
     (a return seen once may be a multipath echo at a false range, whose beam "passes" through
     the real surface in front of it). None: every point may be flagged, every beam counts.
     ``beams`` (n,) bool: the points whose beam origin is known (others' beams never count).
+    ``gps_time`` (n,) s: with it a flagged point stays flagged only while the returns of
+    other pulses on its own beam (:func:`beam_returns`, ``radius`` across, ``margin`` along)
+    are at most ``hit_ratio`` times its see-through count (module docstring).
 
     xyz (n, 3) and origin (n, 3) metres (the scanner position of each point's beam). Score (n,)
     = the see-through count; flagged = score >= min_rays; critical_value = min_rays.
@@ -407,7 +457,7 @@ def detect_free_space(
     if not (np.all(np.isfinite(arr)) and np.all(np.isfinite(org))):
         raise ParameterError("xyz or origin holds NaN or infinite values")
     TransientParameters(free_space_radius=radius, free_space_margin=margin,
-                        free_space_min_rays=min_rays)
+                        free_space_min_rays=min_rays, free_space_hit_ratio=hit_ratio)
     margins = grazing_margins(arr, org, radius=radius, margin=margin)
     if seen_again is not None:
         margins = np.where(seen_again, margins, np.inf)  # a beam with no evidence: never counts
@@ -417,7 +467,16 @@ def detect_free_space(
     flagged = score >= min_rays
     if seen_again is not None:
         flagged &= ~seen_again
+    returned_to = 0
+    if gps_time is not None:
+        cand = np.flatnonzero(flagged)
+        hits = beam_returns(arr, org, np.asarray(gps_time, dtype=np.float64), cand,
+                            radius=radius, depth=margin)
+        surface = hits > hit_ratio * score[cand]
+        flagged[cand[surface]] = False
+        returned_to = int(np.count_nonzero(surface))
     info = {"radius": radius, "margin": margin, "min_rays": int(min_rays), "points": len(arr),
+            "hit_ratio": float(hit_ratio), "points_returned_to": returned_to,
             "points_tested": len(arr), "points_flagged": int(flagged.sum()),
             "beam_margin_median": (float(np.median(margins[np.isfinite(margins)]))
                                    if np.isfinite(margins).any() else margin),

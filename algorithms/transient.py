@@ -86,6 +86,12 @@ class TransientParameters(Parameters):
         ge=0, le=100)
     free_space_min_rays: int = param(
         1, "With a trajectory file: beams that saw through a point to flag it.", ge=1, le=1000)
+    free_space_hit_ratio: float = param(
+        0.5, "With a trajectory file: a point seen through stays flagged only while the returns "
+        "of other pulses on its own beam (within free_space_radius across, free_space_margin "
+        "along) are at most this many times the beams that saw through it: a surface is "
+        "returned to, the edge of one about half the time, a droplet almost never.",
+        ge=0, le=1e6)
     lever_arms: tuple[tuple[int, float, float, float], ...] = param(
         (),
         "With a trajectory file: [point_source_id, forward, left, up] metres of each scanner "

@@ -48,12 +48,12 @@ def run_one(condition: str, seed: int, scale: float) -> dict:
     row: dict = {"condition": condition, "seed": seed, "points": len(cloud),
                  "outliers": int(out.sum())}
     start = time.perf_counter()
-    hf = detect_height_field(cloud.xyz)
+    hf = detect_height_field(cloud.xyz, gps_time=cloud.gps_time)
     row["height_field_s"] = time.perf_counter() - start
     start = time.perf_counter()
     arms = {a[0]: a[1:] for a in cloud.lever_arms()}  # the system's calibration
     origin = scanner_origins(cloud.gps_time, cloud.point_source_id, cloud.trajectory, arms)
-    fs = detect_free_space(cloud.xyz, origin)
+    fs = detect_free_space(cloud.xyz, origin, gps_time=cloud.gps_time)
     row["free_space_s"] = time.perf_counter() - start
     start = time.perf_counter()
     tr = detect_transient(cloud.xyz, cloud.gps_time, cloud.point_source_id)

@@ -214,7 +214,8 @@ def _free_space(
     placed = np.isin(source, list(arms))
     fs = detect_free_space(cloud.xyz[index], origin, radius=params.free_space_radius,
                            margin=params.free_space_margin, min_rays=params.free_space_min_rays,
-                           seen_again=persistent[index], beams=placed)
+                           seen_again=persistent[index], beams=placed,
+                           gps_time=gps_time[index], hit_ratio=params.free_space_hit_ratio)
     seen = np.zeros(len(cloud), dtype=bool)
     seen[index] = fs.flagged
     info = {"radius": params.free_space_radius, "margin": params.free_space_margin,
@@ -225,6 +226,8 @@ def _free_space(
             "beams_counted": fs.info["beams_counted"],
             "beams_with_grazing_margin": fs.info["beams_with_grazing_margin"],
             "beam_margin_median": fs.info["beam_margin_median"],
+            "hit_ratio": params.free_space_hit_ratio,
+            "points_returned_to": fs.info["points_returned_to"],
             "points_flagged": int(fs.flagged.sum())}
     return seen, info
 

@@ -207,3 +207,53 @@ def test_a_point_seen_again_wins_over_the_beam_through_it():
     assert not res.flagged[wall_point]
     assert not res.flagged[again].any()
     assert res.info["beams_counted"] == int(again.sum())
+
+
+def test_beam_returns_equal_a_loop_over_the_points():
+    from algorithms.free_space import beam_returns
+
+    rng = np.random.default_rng(12)
+    origin = np.tile([0.0, 0.0, 2.0], (600, 1))
+    direction = rng.normal(size=(60, 3))
+    direction /= np.linalg.norm(direction, axis=1)[:, None]
+    beam = np.repeat(direction, 10, axis=0)  # ten pulses along each of 60 beams
+    xyz = origin + beam * rng.uniform(4.9, 5.1, (600, 1)) + rng.normal(0, 0.004, (600, 3))
+    t = np.arange(600) * 1e-3
+    t[1] = t[0]  # a second return of the first pulse: not another pulse
+    points = np.arange(0, 600, 7)
+    got = beam_returns(xyz, origin, t, points, radius=0.006, depth=0.08)
+    want = []
+    for p in points:
+        u = (xyz[p] - origin[p]) / np.linalg.norm(xyz[p] - origin[p])
+        count = 0
+        for q in range(600):
+            d = xyz[q] - xyz[p]
+            along = d @ u
+            across = np.linalg.norm(d - along * u)
+            count += bool(t[q] != t[p] and abs(along) <= 0.08 and across <= 0.006)
+        want.append(count)
+    np.testing.assert_array_equal(got, want)
+    assert got.max() > 0
+
+
+def test_a_point_its_own_beam_returns_to_is_not_seen_through():
+    """A scanner standing still fires the same beam every turn. The edge of a wall 5 m away is
+    returned on every other turn and passed on the others (to a wall 9 m away): seen through,
+    yet returned to, a surface. A droplet 2 m away, returned once, is passed by every pulse."""
+    rng = np.random.default_rng(3)
+    scanner = np.array([0.0, 0.0, 1.0])
+    turns = 20
+    ranges = np.where(np.arange(turns) % 2 == 1, 5.0, 9.0)
+    xyz = scanner + np.outer(ranges, [0.0, 1.0, 0.0]) + rng.normal(0, 0.001, (turns, 3))
+    xyz = np.vstack([xyz, scanner + [0.0, 2.0, 0.0]])
+    times = np.r_[np.arange(turns) * 0.01, 0.5]
+    origin = np.tile(scanner, (len(xyz), 1))
+    edge = np.flatnonzero(ranges == 5.0)
+    blind = detect_free_space(xyz, origin, radius=0.006)
+    timed = detect_free_space(xyz, origin, radius=0.006, gps_time=times)
+    assert blind.flagged[edge].all() and blind.flagged[-1]
+    assert not timed.flagged[edge].any() and timed.flagged[-1]
+    assert timed.info["points_returned_to"] == edge.size
+    # returned to on fewer than half as many pulses as pass it: still seen through
+    assert detect_free_space(xyz, origin, radius=0.006, gps_time=times,
+                             hit_ratio=1.0).flagged[edge].all()

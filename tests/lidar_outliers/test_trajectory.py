@@ -89,7 +89,8 @@ def test_transient_with_trajectory_is_clusters_or_free_space():
     origin = scanner_origins(sim.gps_time, sim.point_source_id, sim.trajectory, arms)
     found = detect_transient(sim.xyz, sim.gps_time, sim.point_source_id)
     clusters = found.flagged
-    free = detect_free_space(sim.xyz, origin, seen_again=found.score == 0).flagged
+    free = detect_free_space(sim.xyz, origin, seen_again=found.score == 0,
+                             gps_time=sim.gps_time).flagged
     np.testing.assert_array_equal(result.flagged, clusters | free)
     assert result.info["points_flagged_by_free_space"] == int(free.sum()) > 0
     assert result.info["points_flagged_by_clusters"] == int(clusters.sum())
