@@ -26,7 +26,7 @@ WINDOW = 0.1
 #: Windows between the two compared (0.3 s at WINDOW: a vehicle creeping at 2 cm/s has moved
 #: more than the tolerance).
 LAG = 3
-#: Metres: the median distance to the later window's nearest return of a still scanner (range
+#: Metres: the median distance of a still scanner's returns to the later window's profile (range
 #: noise of a few millimetres).
 TOLERANCE = 0.005
 #: Points of a window compared (a spread sample in time order).
