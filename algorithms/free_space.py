@@ -339,6 +339,8 @@ def beam_returns(xyz: np.ndarray, origin: np.ndarray, gps_time: np.ndarray, poin
     through it and within ``depth`` of it along that line."""
     from scipy.spatial import cKDTree
 
+    from algorithms.neighbours import ball_candidates
+
     out = np.zeros(points.size, dtype=np.int64)
     if points.size == 0:
         return out
@@ -348,20 +350,16 @@ def beam_returns(xyz: np.ndarray, origin: np.ndarray, gps_time: np.ndarray, poin
     reach = float(np.hypot(radius, depth))
     for s in range(0, points.size, RETURNS_BATCH):
         rows = points[s:s + RETURNS_BATCH]
-        near = tree.query_ball_point(local[rows], reach, workers=worker_threads())
-        sizes = np.fromiter((len(a) for a in near), dtype=np.int64, count=rows.size)
-        j = np.fromiter((i for a in near for i in a), dtype=np.int64, count=int(sizes.sum()))
-        p = np.repeat(rows, sizes)
+        row, j = ball_candidates(tree, local, rows, reach)
         beam = local[rows] - (origin[rows] - centre)
         beam /= np.linalg.norm(beam, axis=1)[:, None]
-        u = np.repeat(beam, sizes, axis=0)
+        p = rows[row]
         d = local[j] - local[p]
-        along = np.einsum("ij,ij->i", d, u)
+        along = np.einsum("ij,ij->i", d, beam[row])
         across2 = np.einsum("ij,ij->i", d, d) - along * along
         on_beam = ((gps_time[j] != gps_time[p]) & (np.abs(along) <= depth)
                    & (across2 <= radius * radius))
-        out[s:s + rows.size] = np.add.reduceat(on_beam.astype(np.int64),
-                                               np.r_[0, np.cumsum(sizes)[:-1]]) * (sizes > 0)
+        out[s:s + rows.size] = np.bincount(row[on_beam], minlength=rows.size)
     return out
 
 

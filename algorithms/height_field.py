@@ -250,7 +250,7 @@ def height_above_lowest(local: np.ndarray, rows: np.ndarray, cell: float = STATI
     """(m,) how far each point ``rows`` of ``local`` lies above the lowest return of the 3 x 3
     XY cells of ``cell`` metres around its own (grid corner at local's origin, so a tile and
     the whole cloud share the cells): the height of a tree crown over the road beside it."""
-    from algorithms.detached import grid_index
+    from algorithms.detached import first_lowest_per_key, grid_index
 
     if rows.size == 0:
         return np.zeros(0)
@@ -258,9 +258,8 @@ def height_above_lowest(local: np.ndarray, rows: np.ndarray, cell: float = STATI
     ij -= column_min(ij) - 1  # a free cell on every side: the 3 x 3 keys never wrap
     width = int(ij[:, 1].max()) + 2
     key = ij[:, 0] * width + ij[:, 1]
-    keys, group = np.unique(key, return_inverse=True)
-    floor = np.full(keys.size, np.inf)
-    np.minimum.at(floor, group.ravel(), local[:, 2])
+    first = first_lowest_per_key(key, local[:, 2])  # in increasing key order
+    keys, floor = key[first], local[first, 2]
     lowest = np.full(rows.size, np.inf)
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
