@@ -46,6 +46,8 @@ PLANE_TRIM = 3.0
 MAX_RESIDUAL_RAD = 0.01
 #: The arm's standard deviation (metres) in the plane, at most.
 MAX_ARM_SIGMA = 0.05
+#: Points of the first, coarse periodogram at most (a spread sample: its peak is as sharp).
+COARSE_POINTS = 1024
 #: Rounds of the in-plane fit at most.
 MAX_ROUNDS = 20
 
@@ -100,7 +102,8 @@ def mirror_rate(alpha: np.ndarray, t: np.ndarray, guess: float | None = None) ->
     span = min(0.25, float(t[-1]))
     grid = np.arange(2 * np.pi * MIN_RATE_HZ, 2 * np.pi * MAX_RATE_HZ, np.pi / (4 * span))
     omegas = np.concatenate([-grid[::-1], grid])
-    use = t <= span
+    use = np.flatnonzero(t <= span)
+    use = use[np.linspace(0, use.size - 1, min(use.size, COARSE_POINTS)).astype(np.int64)]
     power = _coherence(alpha[use], t[use], omegas)
     best = float(omegas[np.argmax(power)])
     half = _coherence(alpha[use], t[use], np.array([best / 2]))[0]

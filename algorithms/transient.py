@@ -92,6 +92,13 @@ class TransientParameters(Parameters):
         "along) are at most this many times the beams that saw through it: a surface is "
         "returned to, the edge of one about half the time, a droplet almost never.",
         ge=0, le=1e6)
+    stop_free_space: bool = param(
+        True, "Where a profile scanner stood still (its returns of a tenth of a second lie on "
+        "the profile it records 0.3 s later), also flag the points that at least 5 of its beams "
+        "of that second passed and that its own beam returned to at most 0.1 times as often "
+        "(exhaust and dust at a standstill, which lie in the scan plane like everything the "
+        "standing scanner sees). Needs no trajectory: the scanner's position is fitted from "
+        "the second's own points.")
     lever_arms: tuple[tuple[int, float, float, float], ...] = param(
         (),
         "With a trajectory file: [point_source_id, forward, left, up] metres of each scanner "

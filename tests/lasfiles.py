@@ -258,6 +258,49 @@ def street_scene(path: Path, shuffled: bool = False) -> Path:
                      offsets=(600_000, 5_000_000, 0), vlrs=())
 
 
+def corridor_survey(rng: np.random.Generator, stop: tuple[float, float] = (1.0, 2.0),
+                    speed: float = 1.0, end: float = 3.0, plume: float = 0.0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A profile scanner 1.5 m up turning at 50.37 Hz (20 kHz pulses, 0.9 degrees apart, the
+    phase drifting from turn to turn) in the y-z plane inside a corridor (floor z = 0, walls
+    y = +-5, ceiling z = 6), driving along x at ``speed`` except during ``stop``; while it
+    stands, a share ``plume`` of the pulses that cross a ball of 0.4 m around (y 2, z 0.6)
+    (exhaust beside the vehicle) return from a droplet somewhere inside it: (gps_time, xyz,
+    droplet)."""
+    t = np.arange(0.0, end, 1 / 20_000)
+    moving = np.clip(t, None, stop[0]) + np.clip(t - stop[1], 0, None)
+    x = speed * moving
+    theta = 2 * np.pi * 50.37 * t
+    dy, dz = np.cos(theta), np.sin(theta)
+    with np.errstate(divide="ignore"):
+        to_wall = np.where(dy != 0, 5.0 / np.abs(dy), np.inf)
+        to_floor = np.where(dz < 0, 1.5 / -dz, np.inf)
+        to_ceiling = np.where(dz > 0, 4.5 / dz, np.inf)
+    r = np.minimum(to_wall, np.minimum(to_floor, to_ceiling))
+    # the ball's chord along each beam (centre at range c along, b across it)
+    along = 2.0 * dy + (0.6 - 1.5) * dz
+    across = np.abs(2.0 * dz - (0.6 - 1.5) * dy)
+    half = np.sqrt(np.clip(0.4**2 - across**2, 0, None))
+    standing = (t >= stop[0]) & (t <= stop[1])
+    droplet = standing & (half > 0) & (along > 0) & (rng.random(len(t)) < plume)
+    r = np.where(droplet, along + rng.uniform(-1, 1, len(t)) * half, r)
+    xyz = np.column_stack([x, r * dy, 1.5 + r * dz]) + rng.normal(0, 0.002, (len(t), 3))
+    return t, xyz, droplet
+
+
+def stop_scene(path: Path, shuffled: bool = False) -> Path:
+    """:func:`corridor_survey` with exhaust at its stop of 1.8 s, which starts and ends inside
+    seconds of GPS time (so it is cut into three pieces), as a LAS file near a UTM coordinate;
+    the droplets' indices in the file in ``droplet`` of a ``.npy`` beside it."""
+    t, xyz, droplet = corridor_survey(np.random.default_rng(11), stop=(0.75, 2.55), end=3.3,
+                                      plume=0.3)
+    order = np.random.default_rng(12).permutation(len(t)) if shuffled else np.arange(len(t))
+    np.save(path.with_suffix(".npy"), np.flatnonzero(droplet[order]))
+    return write_las(path, xyz[order] + [600_000, 5_000_000, 50], gps_time=t[order] + 1000.0,
+                     point_source_id=np.ones(len(t), np.uint16), offsets=(600_000, 5_000_000, 0),
+                     vlrs=())
+
+
 #: transient's stage on :func:`street_scene`: radius for its density, max_extent below the
 #: canopy's length and above the box's.
 STREET_TRANSIENT = {"detector": "transient", "radius": 0.5, "max_extent": 6.0}

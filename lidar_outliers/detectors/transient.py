@@ -51,20 +51,24 @@ def run(cloud: Cloud, params: TransientParameters) -> DetectorResult:
     result = detect_transient(
         cloud.xyz, gps_time, cloud.point_source_id, k=params.k, radius=params.radius,
         min_dt=params.min_dt, max_extent=params.max_extent, centre=False)
-    if cloud.trajectory is None:
-        result.info["free_space"] = "no trajectory file given"
-        return result
-    seen_through, fs_info = _free_space(cloud, gps_time, params, result.score == 0.0)
     clusters = np.asarray(result.flagged, dtype=bool)
+    info = dict(result.info)
+    seen_through = np.zeros(len(cloud), dtype=bool)
+    if cloud.trajectory is None:
+        info["free_space"] = "no trajectory file given"
+    else:
+        seen_through, info["free_space"] = _free_space(cloud, gps_time, params,
+                                                       result.score == 0.0)
+        info["points_flagged_by_free_space"] = int(seen_through.sum())
+    if params.stop_free_space:
+        from algorithms.standstill import stop_flags
+
+        at_stops, info["stops"] = stop_flags(gps_time, cloud.point_source_id, cloud.xyz)
+        seen_through |= at_stops
     flagged = clusters | seen_through
     score = np.where(seen_through, np.maximum(result.score, 2.0), result.score)
-    info = dict(result.info)
-    info.update(
-        points_flagged_by_clusters=int(clusters.sum()),
-        points_flagged_by_free_space=int(seen_through.sum()),
-        points_flagged=int(flagged.sum()),
-        free_space=fs_info,
-    )
+    info.update(points_flagged_by_clusters=int(clusters.sum()),
+                points_flagged=int(flagged.sum()))
     return DetectorResult(score=score, flagged=flagged, critical_value=result.critical_value,
                           info=info)
 
@@ -180,11 +184,43 @@ def combine_clusters(params: TransientParameters, columns: dict[str, np.ndarray]
                                          max_extent=params.max_extent)
     filled(out["score"], 0)
     scattered(out["score"], single, np.where(clusters.flagged, 2, 1).astype(np.uint8))
+    flagged = int(clusters.flagged.sum())
+    if params.stop_free_space:
+        at_stops, info["stops"] = combine_stops(columns)
+        scattered(out["score"], at_stops, np.full(at_stops.size, 2, np.uint8))
+        info["points_flagged_by_clusters"] = flagged
+        flagged = int(np.count_nonzero(out["score"] == 2))
     info.update(single_epoch=int(single.size), single_epoch_clusters=n_comp,
-                points_flagged=int(clusters.flagged.sum()),
+                points_flagged=flagged,
                 floating_not_revisited=int((clusters.floating & ~clusters.flagged).sum()),
                 single_epoch_wide=int(clusters.wide.sum()))
     return info
+
+
+def combine_stops(columns: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, Any]]:
+    """(m,) sorted file indices of the points seen through at a stop
+    (:mod:`algorithms.standstill`) among those that reached the stage, over the whole file,
+    and the counts. A file whose returns come in time order per scanner takes one pass of a
+    few million points at a time; any other is sorted by (point_source_id, gps_time) in memory
+    (about 60 bytes a point that reached the stage)."""
+    from algorithms.standstill import stop_flags, stream_stop_flags
+
+    marked: list[np.ndarray] = []
+
+    def chunk_done() -> None:
+        release(*columns.values())
+
+    info = stream_stop_flags(columns["gps_time"], columns["point_source_id"],
+                             columns["in_stage"], (columns["x"], columns["y"], columns["z"]),
+                             marked.append, STREAM_POINTS, chunk_done)
+    if info is not None:
+        rows = np.unique(np.concatenate(marked)) if marked else np.zeros(0, np.int64)
+        return rows, {**info, "order": "in file order (time order per scanner)"}
+    use = np.flatnonzero(columns["in_stage"])
+    xyz = np.column_stack([gathered(columns[c], use) for c in ("x", "y", "z")])
+    got, info = stop_flags(gathered(columns["gps_time"], use),
+                           gathered(columns["point_source_id"], use), xyz)
+    return use[got], {**info, "order": "sorted by scanner and time over the whole file"}
 
 
 def _free_space(

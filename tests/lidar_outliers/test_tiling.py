@@ -32,6 +32,7 @@ from tests.lasfiles import (
     STREET_TRANSIENT,
     airborne_scene,
     scanned_tile_scene,
+    stop_scene,
     street_scene,
     tile_scene,
     write_las,
@@ -289,6 +290,29 @@ def test_transient_tiled_equals_whole_cloud_in_any_point_order(tmp_path):
     a, b = _results(whole), _results(tiled)
     assert ((np.asarray(a.outlier_flags) & 128) != 0).sum() > 300
     _assert_same(a, b, ["transient"])
+
+
+@pytest.mark.parametrize("shuffled", [False, True], ids=["time order", "any order"])
+def test_transient_at_a_stop_tiled_equals_whole_cloud(tmp_path, shuffled):
+    """A scanner standing in exhaust: its stop is found and cut into pieces over the whole
+    file, in one pass in time order or sorted, each piece's beams crossing every tile; tiles
+    of 1 m read the flags."""
+    path = stop_scene(tmp_path / "stop.las", shuffled=shuffled)
+    droplets = np.load(path.with_suffix(".npy"))
+    pipeline = {"pipeline": [{"detector": "transient"}]}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    stats_whole = process_file(path, whole, pipeline)
+    stats = process_file(path, tiled, pipeline, tile_size=1.0)
+    assert stats["mode"] == "tiled" and stats["tiles"]["count"] >= 20
+    a, b = _results(whole), _results(tiled)
+    _assert_same(a, b, ["transient"])
+    flagged = (np.asarray(a.outlier_flags) & 128) != 0
+    assert flagged[droplets].mean() >= 0.5
+    assert np.count_nonzero(flagged) - np.count_nonzero(flagged[droplets]) <= 5
+    stops = stats["stages"][0]["info"]["stops"]
+    assert stops["stop_pieces_placed"] == 3
+    assert stats_whole["stages"][0]["info"]["stops"]["stop_pieces_placed"] == 3
+    assert stops["order"].startswith("sorted" if shuffled else "in file order")
 
 
 def test_transient_tiled_flags_the_canopy_when_max_extent_allows_it(street, tmp_path):
