@@ -166,6 +166,9 @@ def stop_origin(xyz: np.ndarray, gps_time: np.ndarray) -> tuple[np.ndarray | Non
     n = len(xyz)
     centre = xyz.mean(axis=0)
     local = xyz - centre
+    if not in_one_plane(local):  # a spinning head's azimuth turns at one rate too
+        return None, {"points": n, "reason": "the points do not lie in one plane (not a "
+                      "profile scanner)"}
     fit = fit_lever_arm(local, gps_time, np.zeros((n, 3)), np.zeros(n))
     if fit.arm is None:
         for start in profile_starts(local, gps_time):
@@ -176,6 +179,22 @@ def stop_origin(xyz: np.ndarray, gps_time: np.ndarray) -> tuple[np.ndarray | Non
     if fit.arm is None:
         return None, fit.info
     return np.asarray(fit.arm) + centre, fit.info
+
+
+#: Metres from the plane of a still profile scanner's points within which ``PLANE_SHARE`` of
+#: them lie (range noise and a vehicle rocking on its springs: centimetres); the points of a
+#: multi-beam spinning head standing still do not.
+PLANE_BAND = 0.1
+PLANE_SHARE = 0.9
+
+
+def in_one_plane(xyz: np.ndarray) -> bool:
+    """Whether ``PLANE_SHARE`` of the points lie within ``PLANE_BAND`` of their plane."""
+    from algorithms.lever_arms import scan_plane
+
+    pick = np.linspace(0, len(xyz) - 1, min(len(xyz), START_POINTS)).astype(np.int64)
+    normal, centre, _ = scan_plane(xyz[pick])
+    return bool(np.mean(np.abs((xyz[pick] - centre) @ normal) <= PLANE_BAND) >= PLANE_SHARE)
 
 
 #: Starts tried when the centroid's fit is rejected, at most.

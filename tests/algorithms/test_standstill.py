@@ -174,3 +174,19 @@ def test_a_still_scanners_position_is_fitted_from_its_points_in_any_orientation(
     assert np.linalg.norm(origin - truth) < 0.005
     starts = profile_starts(points, t[second])
     assert starts and np.linalg.norm(starts[0] - truth) < 0.5
+
+
+def test_a_standing_multi_beam_head_is_not_taken_for_a_profile_scanner():
+    """Sixteen cones of a spinning head at a stop: still, but no plane through the scanner;
+    no position, nothing flagged."""
+    t = 1000.0 + np.arange(0.0, 1.0, 1 / 20_000)
+    azimuth = 2 * np.pi * 10.0 * t
+    elevation = np.deg2rad(np.linspace(-15, 15, 16))[np.arange(len(t)) % 16]
+    r = np.minimum(1.8 / np.maximum(-np.sin(elevation), 1e-3), 12.0)
+    xyz = np.column_stack([r * np.cos(elevation) * np.cos(azimuth),
+                           r * np.cos(elevation) * np.sin(azimuth), 1.8 + r * np.sin(elevation)])
+    xyz += np.random.default_rng(9).normal(0, 0.002, xyz.shape)
+    origin, info = stop_origin(xyz, t)
+    assert origin is None and "plane" in info["reason"]
+    flags, info = stop_flags(t, np.ones(len(t), int), xyz)
+    assert not flags.any() and info["stop_pieces_placed"] == 0
