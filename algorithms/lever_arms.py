@@ -47,7 +47,7 @@ MAX_RESIDUAL_RAD = 0.01
 #: The arm's standard deviation (metres) in the plane, at most.
 MAX_ARM_SIGMA = 0.05
 #: Points of the first, coarse periodogram at most (a spread sample: its peak is as sharp).
-COARSE_POINTS = 1024
+COARSE_POINTS = 512
 #: Rounds of the in-plane fit at most.
 MAX_ROUNDS = 20
 

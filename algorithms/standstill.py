@@ -33,6 +33,11 @@ LAG = 3
 TOLERANCE = 0.005
 #: Points of a window compared (a spread sample in time order).
 SAMPLE = 256
+#: Later points of the first, coarse comparison (a spread sample in time order).
+SCREEN_POINTS = 2048
+#: Metres: a median distance to the coarse later profile over this is not still (20 times
+#: the tolerance; a scanner moving at walking pace has moved 0.4 m between the windows).
+SCREEN_DISTANCE = 0.1
 #: Fewer points than this in either window: nothing is decided there.
 MIN_WINDOW_POINTS = 20
 
@@ -55,8 +60,17 @@ def profile_distances(points: np.ndarray, later: np.ndarray) -> np.ndarray:
 
 def window_still(earlier: np.ndarray, later: np.ndarray, tolerance: float, sample: int) -> bool:
     """Whether the median :func:`profile_distances` of a spread sample of the points
-    ``earlier`` (n, 3), in time order, to ``later`` (m, 3) is at most ``tolerance`` metres."""
+    ``earlier`` (n, 3), in time order, to ``later`` (m, 3) is at most ``tolerance`` metres.
+
+    A moving scanner's later profile lies metres away: a spread sample of ``SCREEN_POINTS`` of
+    the later points, whose lines between neighbours stray from the surface by millimetres,
+    tells it first when the median is over ``SCREEN_DISTANCE``, without the whole window's
+    k-d tree."""
     pick = np.linspace(0, len(earlier) - 1, min(sample, len(earlier))).astype(np.int64)
+    if len(later) > SCREEN_POINTS:
+        screen = later[np.linspace(0, len(later) - 1, SCREEN_POINTS).astype(np.int64)]
+        if np.median(profile_distances(earlier[pick], screen)) > SCREEN_DISTANCE:
+            return False
     return bool(np.median(profile_distances(earlier[pick], later)) <= tolerance)
 
 
