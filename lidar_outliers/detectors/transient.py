@@ -298,7 +298,8 @@ DETECTOR = Detector(
     parameters=TransientParameters,
     run=run,
     summary=("Clusters seen at one moment only, attached to nothing, where their place was seen "
-             "again (moving objects)."),
+             "again (moving objects), and points a standing scanner's repeated beams saw through "
+             "(exhaust at a stop)."),
     flag_bit=128,
     needs=("gps_time",),
     # the pass over the whole file decides every point (its clusters joined over the file): a
