@@ -181,6 +181,12 @@ class HeightFieldParameters(Parameters):
         "recorded at least this long before or after it was seen again, a static scatter such "
         "as a tree crown, and is not flagged above the surface when it also lies "
         "static_above over the ground (needs gps_time). 0: off.", ge=0, le=1e6)
+    foliage_reach: float = param(
+        0.5, "Metres: a point of a scattered patch (no surface) whose k neighbours all lie "
+        "within this, more than static_above over the lowest return around it, is in foliage "
+        "(a crown the beam enters, even when seen once) and is not flagged above the surface. "
+        "Rain, dust and birds in the air are sparser; exhaust and mist hang lower. 0: off.",
+        ge=0, le=100)
     static_above: float = param(
         2.0, "Metres: a scatter seen again is vegetation, and not flagged above the surface, "
         "only this far above the lowest return around it (the 3 x 3 cells of 1 m around its "
@@ -269,6 +275,14 @@ def height_above_lowest(local: np.ndarray, rows: np.ndarray, cell: float = STATI
     return local[rows, 2] - lowest
 
 
+def dense_scatter(local: np.ndarray, nbr: np.ndarray, points: np.ndarray, reach: float
+                  ) -> np.ndarray:
+    """The ``points`` (indices) whose farthest neighbour in ``nbr`` (m, k + 1; their k + 1
+    nearest, themselves first) lies within ``reach`` metres."""
+    far = np.linalg.norm(local[nbr[:, -1]] - local[points], axis=1)
+    return points[far <= reach]
+
+
 def low_scores(local: np.ndarray, sigma: float, spacing_xy: float | str = "auto",
                voxel: float | str = "auto", sample: np.ndarray | None = None
                ) -> tuple[np.ndarray, dict]:
@@ -327,6 +341,7 @@ def detect_height_field(
     static_dt: float = 0.5,
     static_above: float = 2.0,
     gps_time: np.ndarray | None = None,
+    foliage_reach: float = 0.5,
 ) -> DetectorResult:
     """Edge-aware leave-one-out height-field outlier test (see the module docstring).
 
@@ -362,6 +377,12 @@ def detect_height_field(
         a moving object) are seen once; tree crowns, whose scatter no height field holds, are
         seen again by the next pass or the other scanner; so are a plume fed by the tailpipe
         while the vehicle stands and a mist over a puddle, which hang near the road.
+    foliage_reach : metres; a point whose full patch is not one surface, whose k nearest all
+        lie within this and which lies more than ``static_above`` over the lowest return around
+        it is in foliage, seen once or again: its score above the surface is capped too
+        (0: off). The beam enters a crown 5-30 cm and returns from every depth, so a crown's
+        scatter is dense; rain, dust and birds in the air are sparse, and exhaust, spray and
+        mist hang lower.
 
     Returns
     -------
@@ -370,7 +391,8 @@ def detect_height_field(
     """
     HeightFieldParameters(k=k, sigma=sigma, threshold=threshold, rms_weight=rms_weight,
                           one_sided=one_sided, low=low, spacing_xy=spacing_xy, voxel=voxel,
-                          static_dt=static_dt, static_above=static_above)
+                          static_dt=static_dt, static_above=static_above,
+                          foliage_reach=foliage_reach)
     from algorithms.height_field_fits import scores_from_terms, seen_again, terms_of
 
     arr = check_xyz(xyz)
@@ -410,6 +432,12 @@ def detect_height_field(
         low_again = height_above_lowest(grid_local, again) <= static_above
         static[again[low_again]] = False  # near the road: exhaust, spray, mist
         info["points_seen_again_near_ground"] = int(np.count_nonzero(low_again))
+    info["points_in_foliage"] = 0
+    if foliage_reach > 0 and edge.any():
+        foliage = dense_scatter(grid_local, nbr[edge], rows[edge], foliage_reach)
+        foliage = foliage[height_above_lowest(grid_local, foliage) > static_above]
+        static[foliage] = True
+        info["points_in_foliage"] = int(foliage.size)
     del nbr
     score = np.full(n, np.nan)
     score[rows] = scores_from_terms(terms, sig, float(rms_weight),
@@ -606,7 +634,8 @@ def tile_reach(xyz: np.ndarray, params: HeightFieldParameters, where: np.ndarray
     if n < kk:
         return np.where(where, np.inf, 0.0)
     out = kth_distance_within(local, kk, where, allowed)
-    if name is None and params.static_dt > 0:  # a scatter seen again: the lowest return around
+    if name is None and (params.static_dt > 0 or params.foliage_reach > 0):
+        # a scatter seen again or in foliage: the lowest return around
         out = np.maximum(out, STATIC_REACH)
     if name is None and params.low:
         size = voxel_size(local, LOW_PIECE_POINTS, float(params.spacing_xy), params.voxel)

@@ -110,7 +110,7 @@ DETECTOR = Detector(
     # k nearest neighbours besides the point and, for a scatter seen again, the lowest return
     # around it: a first guess (the reach widens it, and the low test's pieces and floors
     # reach further)
-    halo=lambda params: 3.0 if params.static_dt > 0 else 2.0,
+    halo=lambda params: 3.0 if params.static_dt > 0 or params.foliage_reach > 0 else 2.0,
     reach=reach,
     estimate=Estimate(applies=pending, values=values, pin=pin),
 )

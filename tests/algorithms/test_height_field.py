@@ -344,9 +344,10 @@ def _crown_and_dust():
 
 
 def test_a_scatter_seen_again_is_not_flagged_and_one_seen_once_is():
+    """Times alone (no foliage test): the crown seen on both passes, the dust once."""
     xyz, t, label = _crown_and_dust()
-    off = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.0)
-    on = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.5)
+    off = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.0, foliage_reach=0.0)
+    on = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.5, foliage_reach=0.0)
     assert off.info["points_static"] == 0 and on.info["points_static"] > 1000
     crown, dust = label == 1, label == 2
     assert on.flagged[crown].mean() < 0.5 * off.flagged[crown].mean()
@@ -354,7 +355,8 @@ def test_a_scatter_seen_again_is_not_flagged_and_one_seen_once_is():
     assert on.flagged[dust].any()
     assert not (on.flagged & ~off.flagged).any()
     # without times nothing is seen again
-    assert detect_height_field(xyz, low=False, static_dt=0.5).info["points_static"] == 0
+    assert detect_height_field(xyz, low=False, static_dt=0.5,
+                               foliage_reach=0.0).info["points_static"] == 0
 
 
 def test_seen_again_equals_a_loop_over_the_neighbours():
@@ -381,15 +383,59 @@ def test_a_scatter_seen_again_near_the_road_is_still_flagged():
     xyz = np.r_[xyz, mist]
     t = np.r_[t, np.where(rng.random(600) < 0.5, 0.0, 10.0) + rng.random(600)]
     label = np.r_[label, np.full(600, 3)]
-    off = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.0)
-    on = detect_height_field(xyz, gps_time=t, low=False)  # the defaults: 0.5 s, 2 m
+    off = detect_height_field(xyz, gps_time=t, low=False, static_dt=0.0, foliage_reach=0.0)
+    on = detect_height_field(xyz, gps_time=t, low=False, foliage_reach=0.0)  # 0.5 s, 2 m
     crown, mist = label == 1, label == 3
     assert on.info["points_seen_again_near_ground"] > 100
     assert off.flagged[mist].mean() > 0.5
     np.testing.assert_array_equal(on.flagged[mist], off.flagged[mist])
     assert on.flagged[crown].mean() < 0.5 * off.flagged[crown].mean()
-    everywhere = detect_height_field(xyz, gps_time=t, low=False, static_above=0.0)
+    everywhere = detect_height_field(xyz, gps_time=t, low=False, static_above=0.0,
+                                     foliage_reach=0.0)
     assert everywhere.flagged[mist].mean() < 0.5 * off.flagged[mist].mean()
+
+
+def _crown_seen_once():
+    """Ground, a dense crown 4-6 m up seen on one pass (no times), a sparse scatter of returns
+    in the air at the same height (rain) and a dense dust clump 0.5-1.5 m over the road:
+    (xyz, label 0 ground, 1 crown, 2 rain, 3 dust)."""
+    rng = np.random.default_rng(6)
+    g = rng.uniform(0, 20, (20000, 2))
+    ground = np.c_[g, rng.normal(0, 0.005, 20000)]
+    c = rng.normal(0, 1, (6000, 3))
+    crown = c * rng.uniform(0, 1, (6000, 1)) / np.linalg.norm(c, axis=1)[:, None] + [10, 10, 5]
+    rain = np.c_[rng.uniform(2, 18, (90, 2)), rng.uniform(4, 6, 90)]
+    rain = rain[np.linalg.norm(rain - [10, 10, 5], axis=1) > 2.0][:60]  # not in the crown
+    dust = rng.normal(0, 0.15, (400, 3)) + [4, 15, 1.0]
+    label = np.r_[np.zeros(20000), np.ones(6000), np.full(60, 2), np.full(400, 3)]
+    return np.r_[ground, crown, rain, dust], label
+
+
+def test_a_dense_scatter_high_above_the_ground_is_foliage_even_seen_once():
+    xyz, label = _crown_seen_once()
+    off = detect_height_field(xyz, low=False, foliage_reach=0.0)
+    on = detect_height_field(xyz, low=False)  # the defaults: 0.5 m, 2 m
+    crown, rain, dust = label == 1, label == 2, label == 3
+    assert off.flagged[crown].sum() > 100 and not on.flagged[crown].any()
+    assert on.info["points_in_foliage"] > 1000 and off.info["points_in_foliage"] == 0
+    for kind in (rain, dust):  # sparse, or near the road: tested as before
+        assert off.flagged[kind].sum() > 40
+        np.testing.assert_array_equal(on.flagged[kind], off.flagged[kind])
+    assert not (on.flagged & ~off.flagged).any()
+
+
+def test_dense_scatter_equals_a_loop_over_the_neighbours():
+    from algorithms.height_field import dense_scatter, neighbours
+
+    rng = np.random.default_rng(3)
+    local = np.r_[rng.normal(0, 0.1, (200, 3)), rng.uniform(-3, 3, (200, 3))]
+    points = np.arange(0, 400, 2)
+    nbr = neighbours(local, 12, points)
+    got = dense_scatter(local, nbr, points, 0.25)
+    want = [p for p in points
+            if np.sort(np.linalg.norm(local - local[p], axis=1))[12] <= 0.25]
+    np.testing.assert_array_equal(got, want)
+    assert 0 < got.size < points.size
 
 
 def test_height_above_lowest_equals_a_loop_over_the_cells():

@@ -509,6 +509,24 @@ def test_height_field_seen_again_tiled_equals_whole(scene, tmp_path):
     _assert_same(_results(whole), _results(tiled), ["height_field"])
 
 
+def test_height_field_foliage_tiled_equals_whole(tmp_path):
+    """``foliage_reach`` reads a point's k nearest and, like ``static_above``, the lowest
+    return of the cells around it: a crown seen once over tiles of 1.5 m."""
+    from tests.algorithms.test_height_field import _crown_seen_once
+
+    xyz, label = _crown_seen_once()
+    path = write_las(tmp_path / "crown.las", xyz + [600_000, 5_000_000, 50],
+                     offsets=(600_000, 5_000_000, 0))
+    pipeline = {"pipeline": [{"detector": "height_field", "low": False, "static_dt": 0.0}]}
+    whole, tiled = tmp_path / "whole.las", tmp_path / "tiled.las"
+    stats_whole = process_file(path, whole, pipeline)
+    stats = process_file(path, tiled, pipeline, tile_size=1.5)
+    assert stats["mode"] == "tiled" and stats["tiles"]["count"] >= 100
+    assert stats_whole["stages"][0]["info"]["points_in_foliage"] > 1000
+    a = _results(whole)
+    _assert_same(a, _results(tiled), ["height_field"])
+    assert not np.asarray(a.outlier_flags)[label == 1].any()
+
 
 def test_sigma_and_the_low_tests_spacing_and_voxel_are_fixed_in_one_round(
         street, tmp_path, monkeypatch):
