@@ -177,14 +177,15 @@ def _solve_with_spread(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]
 
 
 def fit_lever_arm(points: np.ndarray, gps_time: np.ndarray, position: np.ndarray,
-                  heading: np.ndarray) -> ArmFit:
+                  heading: np.ndarray, sample: int = SAMPLE_POINTS) -> ArmFit:
     """The lever arm of one profile scanner (module docstring) from its points (n, 3), their
-    times (n,) and the vehicle's reference position (n, 3) and heading (n,) at those times."""
+    times (n,) and the vehicle's reference position (n, 3) and heading (n,) at those times;
+    at most ``sample`` of the points (spread in time) are fitted."""
     n = len(points)
     if n < 100:
         return ArmFit(None, {"points": n, "reason": "fewer than 100 points"})
     order = np.argsort(gps_time, kind="stable")
-    pick = order[np.linspace(0, n - 1, min(n, SAMPLE_POINTS)).astype(np.int64)]
+    pick = order[np.linspace(0, n - 1, min(n, sample)).astype(np.int64)]
     q = vehicle_frame(points[pick], position[pick], heading[pick])
     t = gps_time[pick] - gps_time[pick][0]
     normal, centre, basis = scan_plane(q)

@@ -183,10 +183,11 @@ def stop_origin(xyz: np.ndarray, gps_time: np.ndarray) -> tuple[np.ndarray | Non
     if not in_one_plane(local):  # a spinning head's azimuth turns at one rate too
         return None, {"points": n, "reason": "the points do not lie in one plane (not a "
                       "profile scanner)"}
-    fit = fit_lever_arm(local, gps_time, np.zeros((n, 3)), np.zeros(n))
+    fit = fit_lever_arm(local, gps_time, np.zeros((n, 3)), np.zeros(n), STOP_FIT_POINTS)
     if fit.arm is None:
         for start in profile_starts(local, gps_time):
-            fit = fit_lever_arm(local, gps_time, np.tile(start, (n, 1)), np.zeros(n))
+            fit = fit_lever_arm(local, gps_time, np.tile(start, (n, 1)), np.zeros(n),
+                                STOP_FIT_POINTS)
             if fit.arm is not None:
                 fit = type(fit)(tuple(np.asarray(fit.arm) + start), fit.info)
                 break
@@ -211,6 +212,9 @@ def in_one_plane(xyz: np.ndarray) -> bool:
     return bool(np.mean(np.abs((xyz[pick] - centre) @ normal) <= PLANE_BAND) >= PLANE_SHARE)
 
 
+#: Points of a piece (a spread sample in time order) its scanner's position is fitted to: a
+#: second of a still scanner turns its mirror 50-250 times.
+STOP_FIT_POINTS = 5000
 #: Starts tried when the centroid's fit is rejected, at most.
 MAX_STARTS = 4
 #: Points (a spread sample in time order) the starts are scored on.
