@@ -11,6 +11,14 @@ and where the median distance to the later profile (the line through the two nea
 returns: pulses a degree apart leave centimetres between them along the scan line, none across
 it) is at most ``tolerance`` the scanner stood still from the start of the first window to the
 end of the second. Airborne returns and moving objects in a window do not move the median.
+
+Free space at a stop (:func:`stop_flags`, :func:`stream_stop_flags`): the still windows are cut
+into pieces of whole seconds of GPS time; in each piece the scanner's position is fitted from
+the piece's own returns (:func:`stop_origin`: every beam leaves it) and a return that the
+piece's beams passed at least ``STOP_MIN_PASSES`` times and that its own beam returned to at
+most ``STOP_RETURN_RATIO`` times as often is flagged: a surface is hit on every turn, a droplet
+of exhaust once. A piece is decided from its returns and the ``lag`` windows on either side, so
+a pass over a file in chunks gives the result of a run over the whole file.
 numpy in, numpy out (scipy's k-d tree).
 """
 
@@ -173,8 +181,8 @@ def still_members(which: np.ndarray, still: np.ndarray, lag: int = LAG) -> np.nd
 def stop_origin(xyz: np.ndarray, gps_time: np.ndarray) -> tuple[np.ndarray | None, dict]:
     """(3,) where a still profile scanner stands, from its own points: every beam leaves it
     (:func:`algorithms.lever_arms.fit_lever_arm` at a zero pose, started from the points'
-    centroid and, when that fit is rejected, from the rates of the points' own turning
-    :func:`profile_starts`); None when no start gives an accepted fit."""
+    centroid and, when that fit is refused, from the guesses of :func:`profile_starts`); None
+    when the points do not lie in one plane or no start gives an accepted fit."""
     from algorithms.lever_arms import fit_lever_arm
 
     n = len(xyz)
@@ -188,9 +196,8 @@ def stop_origin(xyz: np.ndarray, gps_time: np.ndarray) -> tuple[np.ndarray | Non
         for start in profile_starts(local, gps_time):
             fit = fit_lever_arm(local, gps_time, np.tile(start, (n, 1)), np.zeros(n),
                                 STOP_FIT_POINTS)
-            if fit.arm is not None:
-                fit = type(fit)(tuple(np.asarray(fit.arm) + start), fit.info)
-                break
+            if fit.arm is not None:  # fitted relative to the start
+                return np.asarray(fit.arm) + start + centre, fit.info
     if fit.arm is None:
         return None, fit.info
     return np.asarray(fit.arm) + centre, fit.info
