@@ -190,3 +190,19 @@ def test_a_standing_multi_beam_head_is_not_taken_for_a_profile_scanner():
     assert origin is None and "plane" in info["reason"]
     flags, info = stop_flags(t, np.ones(len(t), int), xyz)
     assert not flags.any() and info["stop_pieces_placed"] == 0
+
+
+def test_a_stop_whose_beams_miss_their_returns_by_milliradians_is_not_placed():
+    """At a stop nothing but the returns' noise moves a beam: a position whose beams miss
+    their returns by 5 mrad (median) is refused, one within 0.3 mrad is kept."""
+    t, xyz, _ = exhaust_at_a_stop()
+    second = (t >= 1001.0) & (t < 1002.0)
+    rel = xyz[second] - [0.75, 0.0, 1.5]  # from the scanner, in its y-z plane
+    rng = np.random.default_rng(10)
+    for jitter, placed in ((0.0003, True), (0.008, False)):
+        turn = rng.normal(0, jitter, len(rel))
+        c, s = np.cos(turn), np.sin(turn)
+        moved = np.column_stack([rel[:, 0], c * rel[:, 1] - s * rel[:, 2],
+                                 s * rel[:, 1] + c * rel[:, 2]]) + [0.75, 0.0, 1.5]
+        origin, info = stop_origin(moved, t[second])
+        assert (origin is not None) == placed, info
