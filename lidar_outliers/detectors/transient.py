@@ -7,8 +7,8 @@ each point's persistence and what the cluster decisions read around it
 (:func:`~algorithms.transient.point_facts`), one pass over the whole file the scan-line
 neighbours and the clusters of the single-epoch points with their decisions
 (:func:`combine_clusters`) and, with ``stop_free_space``, what each scanner's beams saw through
-where it stood still (:func:`combine_stops`), and the tiles read each point's score (no halo). With a trajectory
-the beams cross the whole cloud, so it runs whole.
+where it stood still (:func:`combine_stops`), and the tiles read each point's score (no halo).
+With a trajectory the beams cross the whole cloud, so it runs whole.
 """
 
 from __future__ import annotations
